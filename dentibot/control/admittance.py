@@ -1,0 +1,227 @@
+"""Admittance control (thesis 4.3-4.5): force -> tool twist -> joint targets.
+
+Per axis, a mass-damper with no spring, ``v_i = k f_i / (m_i s + b_i)`` (eq 4.22, with the gain
+``k`` of fig 4.2), discretised with Tustin (eq 4.23-4.25)::
+
+    v[k+1] = ts/(ts b + 2m) (f[k+1] + f[k]) - (ts b - 2m)/(ts b + 2m) v[k]
+
+The twist is taken to joint rates through the {H} Jacobian at the active reference point,
+limited (``limits.JointLimiter``), and integrated with the trapezoid of eq 4.24-4.25 into the
+next joint target (MoveJoints) and the joint rates (MoveJointsVel).
+
+Unit system (kept from the thesis's experiments, write it down everywhere): forces in N and
+torques in N*m go in; linear velocity comes out in mm/s and angular velocity in rad/s, i.e. the
+steady state is ``v = k f / b`` mm/s per N and ``k tau / b`` rad/s per N*m. Self-alignment
+(k = 500, b = 80) thus moves 6.25 mm/s per N of insertion force, as the thesis measured.
+Angular rates stay in rad/s inside (``JointCommand.twist``); ``twist_mm_deg`` gives deg/s.
+
+An axis with infinite m or b (Table 4.3's b6 = m6 = inf in self-alignment) is switched off
+exactly: its velocity is identically zero, whatever the force.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dentibot.control.kinematics import Meca500, damped_least_squares
+from dentibot.control.limits import JointLimiter, LimitReport
+from dentibot.errors import ConfigError
+
+INF = math.inf
+DEFAULT_TS = 0.002  # s, 500 Hz (thesis: ts = 0.002)
+AXES = ("x", "y", "z", "rx", "ry", "rz")
+
+
+@dataclass(frozen=True)
+class AdmittanceParams:
+    """Gain k and per-axis inertia m and damping b (Table 4.3 / 6.4).
+
+    Units: b in N per (mm/s) for linear axes and N*m per (rad/s) for angular axes, scaled by
+    k; m in N per (mm/s^2) likewise. Only the ratios matter: time constant m/b (s) and steady
+    gain k/b (eq 4.33).
+    """
+
+    k: float
+    b: tuple[float, ...]
+    m: tuple[float, ...]
+    name: str = "custom"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "b", tuple(float(x) for x in self.b))
+        object.__setattr__(self, "m", tuple(float(x) for x in self.m))
+        if not (math.isfinite(self.k) and self.k > 0):
+            raise ConfigError("admittance.k", self.k, "a finite number > 0")
+        for name, vals in (("b", self.b), ("m", self.m)):
+            if len(vals) != 6:
+                raise ConfigError(f"admittance.{name}", vals, "exactly 6 values (x, y, z, rx, ry, rz)")
+            for i, v in enumerate(vals):
+                if math.isnan(v) or v <= 0:
+                    raise ConfigError(f"admittance.{name}{i + 1}", v, "> 0 (inf switches the axis off)")
+
+    def enabled(self, axis: int) -> bool:
+        return math.isfinite(self.m[axis]) and math.isfinite(self.b[axis])
+
+    def time_constant(self, axis: int) -> float:
+        """m/b in s (eq 4.33); 0 for a disabled axis."""
+        return self.m[axis] / self.b[axis] if self.enabled(axis) else 0.0
+
+    def steady_gain(self, axis: int) -> float:
+        """k/b: mm/s per N (linear) or rad/s per N*m (angular); 0 for a disabled axis."""
+        return self.k / self.b[axis] if self.enabled(axis) else 0.0
+
+    def replace(self, **kw) -> AdmittanceParams:
+        d = dict(k=self.k, b=self.b, m=self.m, name=self.name)
+        d.update(kw)
+        return AdmittanceParams(**d)
+
+
+# Table 4.3. The table's m:b = 1:1000 (tau = 1 ms) is what was run; section 4.5's text says
+# 1:500 (tau = 2 ms).
+DRAGGING = AdmittanceParams(
+    k=1500.0, b=(80, 80, 80, 160, 160, 160), m=(0.08, 0.08, 0.08, 0.16, 0.16, 0.16), name="dragging"
+)
+SELF_ALIGNMENT = AdmittanceParams(
+    k=500.0, b=(80, 80, 80, 80, 80, INF), m=(0.08, 0.08, 0.08, 0.08, 0.08, INF), name="self_alignment"
+)
+
+
+@dataclass(frozen=True)
+class Experiment1Config:
+    """One column of Table 6.4 (experiment 1, force-guided alignment).
+
+    ``fz_n`` is the constant insertion force (N) or None when the feedrate controller sets it
+    within ``fz_bounds_n``. m is not printed in Table 6.4; m = b/1000 as in Table 4.3.
+    """
+
+    name: str
+    params: AdmittanceParams
+    file_rotation: bool
+    fz_n: float | None
+    fz_bounds_n: tuple[float, float] | None
+
+
+def _exp1_params(name: str, b6: float) -> AdmittanceParams:
+    return AdmittanceParams(
+        k=500.0, b=(80, 80, 80, 80, 80, b6), m=(0.08, 0.08, 0.08, 0.08, 0.08, b6 / 1000.0),
+        name=f"experiment1_{name}",
+    )
+
+
+EXPERIMENT_1 = {
+    "A": Experiment1Config("A", _exp1_params("A", 80.0), False, 1.0, None),
+    "B": Experiment1Config("B", _exp1_params("B", INF), True, 1.0, None),
+    "C": Experiment1Config("C", _exp1_params("C", INF), True, None, (-0.2, 0.5)),
+}
+
+PRESETS = {p.name: p for p in (DRAGGING, SELF_ALIGNMENT)} | {
+    c.params.name: c.params for c in EXPERIMENT_1.values()
+}
+
+
+class AdmittanceFilter:
+    """The six Tustin mass-damper filters of eq 4.25, with the gain k applied.
+
+    ``step(f)`` takes the wrench (N, N*m) at the reference point in {H} (sensor plus desired
+    wrench) and returns the twist [mm/s x3, rad/s x3].
+    """
+
+    def __init__(self, params: AdmittanceParams, ts: float = DEFAULT_TS) -> None:
+        if not (ts > 0 and math.isfinite(ts)):
+            raise ConfigError("control.period_s", ts, "a finite number > 0")
+        self.params = params
+        self.ts = ts
+        a = np.zeros(6)
+        c = np.zeros(6)
+        for i in range(6):
+            if params.enabled(i):
+                m, b = params.m[i], params.b[i]
+                den = ts * b + 2.0 * m
+                a[i] = params.k * ts / den
+                c[i] = (ts * b - 2.0 * m) / den
+        self._a = a
+        self._c = c
+        self.v = np.zeros(6)
+        self._f_prev = np.zeros(6)
+
+    def reset(self) -> None:
+        self.v[:] = 0.0
+        self._f_prev[:] = 0.0
+
+    def step(self, f: np.ndarray) -> np.ndarray:
+        f = np.asarray(f, dtype=float)
+        v = self._a * (f + self._f_prev) - self._c * self.v
+        self._f_prev = f.copy()
+        self.v = v
+        return v
+
+
+@dataclass(frozen=True)
+class JointCommand:
+    """One tick's result: the joint target (MoveJoints) and the joint rates (MoveJointsVel)."""
+
+    q_target_deg: np.ndarray
+    qdot_deg_s: np.ndarray
+    twist: np.ndarray  # [mm/s x3, rad/s x3] in {H} at the reference point, before limits
+    limits: LimitReport
+
+    @property
+    def twist_mm_deg(self) -> np.ndarray:
+        """The twist as [mm/s x3, deg/s x3]."""
+        return np.concatenate([self.twist[:3], np.degrees(self.twist[3:])])
+
+
+@dataclass
+class AdmittanceController:
+    """Admittance filter + {H} Jacobian + limits + trapezoidal integration (fig 4.2).
+
+    ``ref_point_h_mm`` is the point of {H} whose velocity the twist describes (reference point
+    A for dragging, B for self-alignment: fig 4.7); the wrench handed to ``step`` must be
+    expressed about the same point.
+    """
+
+    robot: Meca500
+    params: AdmittanceParams
+    ts: float = DEFAULT_TS
+    ref_point_h_mm: tuple[float, float, float] | None = None
+    limiter: JointLimiter | None = None
+    singular_sigma: float = 0.05  # below this smallest singular value, damp (DLS)
+    _filter: AdmittanceFilter = field(init=False)
+
+    def __post_init__(self) -> None:
+        self._filter = AdmittanceFilter(self.params, self.ts)
+        if self.limiter is None:
+            self.limiter = JointLimiter(self.robot, ts=self.ts)
+        self._w_prev = np.zeros(6)
+        self._half_ts_deg = math.degrees(0.5 * self.ts)
+        self._q_lo = self.robot.joint_limits_deg[:, 0].copy()
+        self._q_hi = self.robot.joint_limits_deg[:, 1].copy()
+
+    def set_params(self, params: AdmittanceParams, ref_point_h_mm=None) -> None:
+        """Switch mode (e.g. dragging -> self-alignment): the filter restarts from rest."""
+        self.params = params
+        self.ref_point_h_mm = ref_point_h_mm
+        self._filter = AdmittanceFilter(params, self.ts)
+        self._w_prev[:] = 0.0
+
+    def reset(self) -> None:
+        self._filter.reset()
+        self._w_prev[:] = 0.0
+
+    def step(self, q_deg, wrench: np.ndarray) -> JointCommand:
+        """Advance one period from the joint angles ``q_deg`` with the wrench (N, N*m)."""
+        twist = self._filter.step(wrench)
+        robot = self.robot
+        jh, frames = robot.tool_jacobian(q_deg, self.ref_point_h_mm, with_frames=True)
+        if robot.singularity(q_deg, frames=frames).value > 0.2:
+            qdot = np.linalg.solve(jh, twist)
+        else:
+            qdot = damped_least_squares(jh, twist, self.singular_sigma)
+        sing = robot.singularity(q_deg, qdot, frames=frames)
+        qdot, report = self.limiter.apply(q_deg, qdot, sing)
+        q_next = np.asarray(q_deg, dtype=float) + (self._half_ts_deg * (qdot + self._w_prev))
+        np.clip(q_next, self._q_lo, self._q_hi, out=q_next)
+        self._w_prev = qdot
+        return JointCommand(q_next, np.degrees(qdot), twist, report)

@@ -1,0 +1,117 @@
+"""File feedrate control and the reversal trigger (thesis 5.3-5.4, fig 5.5, 5.6, 5.8).
+
+A PD controller on the torque error ``e = tau_d - tau`` (file torque, mNm) gives the insertion
+force ``fz*`` (N) that the admittance law turns into feed along the file axis; ``fz = sat(fz*)``
+(eq 5.7). When the file torque is far over ``tau_d`` the PD output drops below the reversal
+threshold and inverse rotation control takes over (section 5.4: ``fz* < -0.2``).
+
+Eq 5.7 prints its bounds inconsistently (-0.2 .. 0.2 .. 0.5); section 5.4 runs with -0.5 .. 0.5,
+which are the defaults here; experiment 1 config C used -0.2 .. 0.5 (Table 6.4).
+
+The thesis gives no PD gains. The defaults are assumptions chosen from the thesis's numbers:
+with ``kp = 0.025 N/mNm`` the feed saturates at +0.5 N when the torque is 20 mNm or more
+below ``tau_d`` and reversal triggers when it is more than 8 mNm above (48 mNm for
+tau_d = 40, 58 mNm for tau_d = 50: below the 62 mNm strength). The derivative acts on the
+measured torque (no kick when tau_d changes) through a first-order filter (``kd_filter_s``)
+so that motor-current noise is not amplified.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from dentibot.errors import ConfigError
+
+#: Torsional strength of a NiTi file (thesis eq 5.5, ref [37]): 6.20 Ncm.
+FILE_TORQUE_LIMIT_MNM = 62.0
+#: Handpiece motor: gear ratio and torque constant (thesis 5.1).
+GEAR_RATIO = 67.0
+KM_MNM_PER_A = 16.0
+
+
+def file_torque_from_current(current_a: float, efficiency: float = 1.0,
+                             km_mnm_per_a: float = KM_MNM_PER_A, gear_ratio: float = GEAR_RATIO) -> float:
+    """File torque (mNm) from motor current (A): ``T = Km I GR eta`` (eq 5.4-5.5)."""
+    return current_a * km_mnm_per_a * gear_ratio * efficiency
+
+
+def current_limit_a(torque_limit_mnm: float = FILE_TORQUE_LIMIT_MNM, efficiency: float = 1.0,
+                    km_mnm_per_a: float = KM_MNM_PER_A, gear_ratio: float = GEAR_RATIO) -> float:
+    """Motor current (A) at which the file reaches ``torque_limit_mnm`` (eq 5.6)."""
+    return torque_limit_mnm / (km_mnm_per_a * gear_ratio * efficiency)
+
+
+@dataclass(frozen=True)
+class FeedrateParams:
+    """Gains and bounds of the feedrate controller (units: mNm in, N out)."""
+
+    tau_d_mnm: float = 40.0
+    kp_n_per_mnm: float = 0.025
+    kd_n_s_per_mnm: float = 0.0005
+    kd_filter_s: float = 0.02
+    fz_min_n: float = -0.5
+    fz_max_n: float = 0.5
+    reversal_threshold_n: float = -0.2
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.tau_d_mnm < FILE_TORQUE_LIMIT_MNM:
+            raise ConfigError("feedrate.tau_d_mnm", self.tau_d_mnm,
+                              f"0 < tau_d < {FILE_TORQUE_LIMIT_MNM} mNm (the file's strength)")
+        if not self.kp_n_per_mnm > 0.0:
+            raise ConfigError("feedrate.kp_n_per_mnm", self.kp_n_per_mnm, "> 0")
+        if self.kd_n_s_per_mnm < 0.0:
+            raise ConfigError("feedrate.kd_n_s_per_mnm", self.kd_n_s_per_mnm, ">= 0")
+        if self.kd_filter_s <= 0.0:
+            raise ConfigError("feedrate.kd_filter_s", self.kd_filter_s, "> 0 s")
+        if not self.fz_min_n < self.fz_max_n:
+            raise ConfigError("feedrate.fz_min_n", self.fz_min_n, f"< fz_max_n = {self.fz_max_n}")
+        # The threshold applies to the unsaturated fz*, so it may lie below fz_min; a value
+        # >= 0 would reverse while the torque is still under tau_d.
+        if not self.reversal_threshold_n < 0.0:
+            raise ConfigError("feedrate.reversal_threshold_n", self.reversal_threshold_n,
+                              "< 0 N (reversal is for torque above tau_d)")
+
+    @property
+    def reversal_torque_mnm(self) -> float:
+        """Steady torque above which reversal triggers (derivative term at rest)."""
+        return self.tau_d_mnm - self.reversal_threshold_n / self.kp_n_per_mnm
+
+
+@dataclass(frozen=True)
+class FeedrateOutput:
+    fz_star_n: float  # unsaturated PD output
+    fz_n: float  # saturated, fed to the admittance law (eq 5.7)
+    reverse: bool  # fz* below the reversal threshold (section 5.4)
+
+
+class FeedrateController:
+    """PD on (tau_d - tau) -> fz (fig 5.5), discretised at period ``ts``."""
+
+    def __init__(self, params: FeedrateParams | None = None, ts: float = 0.002) -> None:
+        self.params = params or FeedrateParams()
+        if not ts > 0.0:
+            raise ConfigError("control.period_s", ts, "> 0")
+        self.ts = ts
+        # Filtered derivative of the measured torque, Tustin: D(s) = s / (T s + 1).
+        t = self.params.kd_filter_s
+        self._d_a = 2.0 / (2.0 * t + ts)
+        self._d_b = (2.0 * t - ts) / (2.0 * t + ts)
+        self.reset()
+
+    def reset(self) -> None:
+        self._tau_prev: float | None = None
+        self._dtau = 0.0
+
+    def step(self, tau_mnm: float) -> FeedrateOutput:
+        p = self.params
+        if not math.isfinite(tau_mnm):
+            raise ValueError(f"file torque is not finite: {tau_mnm}")
+        if self._tau_prev is None:
+            self._tau_prev = tau_mnm
+        # y[k] = a (u[k] - u[k-1]) + b y[k-1]
+        self._dtau = self._d_a * (tau_mnm - self._tau_prev) + self._d_b * self._dtau
+        self._tau_prev = tau_mnm
+        fz_star = p.kp_n_per_mnm * (p.tau_d_mnm - tau_mnm) - p.kd_n_s_per_mnm * self._dtau
+        fz = min(max(fz_star, p.fz_min_n), p.fz_max_n)
+        return FeedrateOutput(fz_star, fz, fz_star < p.reversal_threshold_n)

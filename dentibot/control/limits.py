@@ -1,0 +1,143 @@
+"""Joint-rate limits applied after the admittance law (thesis 4.3, "Robot Command Decision").
+
+The arm is commanded in joint space precisely so that these checks can run before anything is
+sent: singularity slowing, joint-range guarding and joint-speed clamping. Units: joint angles
+deg, joint rates rad/s (what the Jacobian produces).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dentibot.control.kinematics import Meca500, SingularityMeasure
+from dentibot.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class SingularityThresholds:
+    """Where slowing starts and where motion toward a singularity stops.
+
+    Assumptions (no vendor figure): the Meca500 refuses motion very near a singularity
+    (error 1012); slowing from about 10 deg (wrist, elbow) or 20 mm (shoulder) away keeps the
+    arm clear of it with a smooth approach.
+    """
+
+    shoulder_start_mm: float = 20.0
+    shoulder_stop_mm: float = 5.0
+    elbow_start: float = math.sin(math.radians(10.0))
+    elbow_stop: float = math.sin(math.radians(2.0))
+    wrist_start: float = math.sin(math.radians(10.0))
+    wrist_stop: float = math.sin(math.radians(2.0))
+
+    def __post_init__(self) -> None:
+        for name in ("shoulder", "elbow", "wrist"):
+            start, stop = getattr(self, f"{name}_start"
+                                  + ("_mm" if name == "shoulder" else "")), getattr(
+                self, f"{name}_stop" + ("_mm" if name == "shoulder" else ""))
+            if not 0.0 <= stop < start:
+                raise ConfigError(f"singularity.{name}_start", start,
+                                  f"must be greater than {name}_stop = {stop} >= 0")
+
+
+@dataclass(frozen=True)
+class LimitReport:
+    """What the limiter changed this tick (all 1.0 / empty when nothing)."""
+
+    singularity_scale: float = 1.0
+    speed_scale: float = 1.0
+    guarded_joints: tuple[int, ...] = ()
+    singularity: SingularityMeasure | None = None
+
+    @property
+    def limited(self) -> bool:
+        return self.singularity_scale < 1.0 or self.speed_scale < 1.0 or bool(self.guarded_joints)
+
+
+def _ramp(value: float, stop: float, start: float) -> float:
+    if value >= start:
+        return 1.0
+    if value <= stop:
+        return 0.0
+    return (value - stop) / (start - stop)
+
+
+@dataclass
+class JointLimiter:
+    """Scales and clamps joint rates so the arm never leaves its envelope.
+
+    - Singularities: each of the three factors of ``det J`` (see ``SingularityMeasure``) that is
+      below its start threshold *and decreasing* scales the whole rate vector down, to zero at
+      the stop threshold. Moving away from a singularity is never slowed.
+    - Joint range: a joint moving toward its limit may go at most ``v_max * d / margin``
+      (d = distance left) and never further than the limit in one period; that joint alone is
+      clamped, so motions that do not push the joint further stay available.
+    - Joint speed: if any joint exceeds ``speed_fraction`` of its limit the whole vector is
+      scaled uniformly (the Cartesian direction is kept).
+    """
+
+    robot: Meca500
+    ts: float = 0.002
+    range_margin_deg: float = 5.0
+    speed_fraction: float = 1.0
+    singularity: SingularityThresholds = field(default_factory=SingularityThresholds)
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.speed_fraction <= 1.0:
+            raise ConfigError("limits.speed_fraction", self.speed_fraction, "0 < value <= 1")
+        if self.range_margin_deg <= 0.0:
+            raise ConfigError("limits.range_margin_deg", self.range_margin_deg, "> 0 deg")
+        self._lo = np.radians(self.robot.joint_limits_deg[:, 0])
+        self._hi = np.radians(self.robot.joint_limits_deg[:, 1])
+        self._vmax = self.robot.joint_speed_limits_rad_s * self.speed_fraction
+        self._margin = math.radians(self.range_margin_deg)
+        self._lo_f = tuple(float(x) for x in self._lo)
+        self._hi_f = tuple(float(x) for x in self._hi)
+        self._vmax_f = tuple(float(x) for x in self._vmax)
+
+    def singularity_scale(self, s: SingularityMeasure) -> float:
+        th = self.singularity
+        scale = 1.0
+        if s.shoulder_rate < 0.0:
+            scale = min(scale, _ramp(s.shoulder_mm, th.shoulder_stop_mm, th.shoulder_start_mm))
+        if s.elbow_rate < 0.0:
+            scale = min(scale, _ramp(s.elbow, th.elbow_stop, th.elbow_start))
+        if s.wrist_rate < 0.0:
+            scale = min(scale, _ramp(s.wrist, th.wrist_stop, th.wrist_start))
+        return scale
+
+    def apply(self, q_deg, qdot_rad_s: np.ndarray,
+              sing: SingularityMeasure | None = None) -> tuple[np.ndarray, LimitReport]:
+        """Limited joint rates (rad/s) for the configuration ``q_deg``."""
+        if sing is None:
+            sing = self.robot.singularity(q_deg, qdot_rad_s)
+        s_scale = self.singularity_scale(sing)
+        qdot = qdot_rad_s * s_scale if s_scale < 1.0 else qdot_rad_s
+        # Joint range: distance left in the direction of motion. Plain floats: six joints do
+        # not pay numpy's per-call overhead (this runs every tick).
+        out = [0.0] * 6
+        guarded = []
+        ratio = 0.0
+        for i in range(6):
+            w = float(qdot[i])
+            qi = math.radians(q_deg[i])
+            dist = max(self._hi_f[i] - qi if w > 0.0 else qi - self._lo_f[i], 0.0)
+            vmax = self._vmax_f[i]
+            if dist < self._margin:
+                allowed = min(vmax * dist / self._margin, dist / self.ts)
+                if abs(w) > allowed:
+                    w = math.copysign(allowed, w)
+                    guarded.append(i)
+            out[i] = w
+            ratio = max(ratio, abs(w) / vmax)
+        # Joint speed: uniform scaling keeps the direction of the tool motion.
+        speed_scale = 1.0
+        if ratio > 1.0:
+            speed_scale = 1.0 / ratio
+        qdot = np.array(out)
+        if speed_scale < 1.0:
+            qdot *= speed_scale
+        guarded = tuple(guarded)
+        return qdot, LimitReport(s_scale, speed_scale, guarded, sing)

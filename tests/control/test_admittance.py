@@ -1,0 +1,164 @@
+"""Admittance law (thesis 4.3-4.5): discrete response, presets, disabled axes, joint targets."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from dentibot.control.admittance import (
+    DRAGGING,
+    EXPERIMENT_1,
+    PRESETS,
+    SELF_ALIGNMENT,
+    AdmittanceController,
+    AdmittanceFilter,
+    AdmittanceParams,
+)
+from dentibot.control.kinematics import Meca500, matrix_from_pose
+from dentibot.errors import ConfigError
+
+Q0 = [0.0, 10.0, 20.0, 0.0, 30.0, 0.0]
+
+
+def test_table_4_3_presets():
+    assert DRAGGING.k == 1500 and DRAGGING.b == (80, 80, 80, 160, 160, 160)
+    assert DRAGGING.m == (0.08, 0.08, 0.08, 0.16, 0.16, 0.16)
+    assert SELF_ALIGNMENT.k == 500 and SELF_ALIGNMENT.b[:5] == (80,) * 5
+    assert math.isinf(SELF_ALIGNMENT.b[5]) and math.isinf(SELF_ALIGNMENT.m[5])
+    assert SELF_ALIGNMENT.time_constant(0) == pytest.approx(0.001)  # m:b = 1:1000 as run
+
+
+def test_table_6_4_configs():
+    assert EXPERIMENT_1["A"].params.b == (80,) * 6 and not EXPERIMENT_1["A"].file_rotation
+    assert math.isinf(EXPERIMENT_1["B"].params.b[5]) and EXPERIMENT_1["B"].fz_n == 1.0
+    assert EXPERIMENT_1["C"].fz_n is None and EXPERIMENT_1["C"].fz_bounds_n == (-0.2, 0.5)
+    assert all(c.params.k == 500 for c in EXPERIMENT_1.values())
+    assert "experiment1_C" in PRESETS and "dragging" in PRESETS
+
+
+def test_self_alignment_moves_6_25_mm_s_per_newton():
+    # The thesis's own figure: k = 500, b = 80 -> 6.25 mm/s per N of insertion force.
+    filt = AdmittanceFilter(SELF_ALIGNMENT)
+    for _ in range(50):
+        v = filt.step([0, 0, 1.0, 0, 0, 0])
+    assert v[2] == pytest.approx(6.25, rel=1e-12)
+
+
+def first_order_response_to_sampled_step(k, b, tau, f, ts, t):
+    """Exact continuous response of k/(m s + b) to the input Tustin assumes between samples.
+
+    The discrete step starts from f[0] = 0, and Tustin (trapezoidal) integration treats the
+    input as linear between samples: a ramp from 0 to f over the first period, then constant.
+    Unit-ramp response of 1/(m s + b): (t - tau (1 - exp(-t/tau))) / (b ts).
+    """
+    def ramp(tt):
+        tt = np.maximum(tt, 0.0)
+        return (tt - tau * (1.0 - np.exp(-tt / tau))) / (b * ts)
+
+    return k * f * (ramp(t) - ramp(t - ts))
+
+
+@pytest.mark.parametrize("m,b,k,f", [(0.8, 80.0, 500.0, 2.0), (1.6, 160.0, 1500.0, -0.7),
+                                     (0.4, 20.0, 100.0, 1.0)])
+def test_step_response_matches_first_order_analytic(m, b, k, f):
+    # Analytic (eq 4.32): time constant m/b, final value k f / b.
+    ts = 0.002
+    params = AdmittanceParams(k=k, b=(b,) * 6, m=(m,) * 6)
+    filt = AdmittanceFilter(params, ts)
+    tau = m / b
+    n = int(10 * tau / ts)
+    v = np.array([filt.step([f] * 6)[0] for _ in range(n)])
+    t = ts * np.arange(1, n + 1)
+    final = k * f / b
+    analytic = first_order_response_to_sampled_step(k, b, tau, f, ts, t)
+    # Tustin's error is second order in ts/tau (0.1 here at most): under 1 % of the final value.
+    assert np.max(np.abs(v - analytic)) < 0.01 * abs(final)
+    assert v[-1] == pytest.approx(final, rel=1e-3)
+    # Time constant: 63.2 % of the final value is reached within one period of tau (+ the
+    # half period the sampled step lags).
+    idx = np.argmax(np.abs(v) >= 0.632 * abs(final))
+    assert abs(t[idx] - (tau + ts / 2)) <= ts
+
+
+def test_tustin_recursion_exact_values():
+    # Hand computation of eq 4.25 for m = 0.08, b = 80, ts = 0.002: ts b = 2 m, so the
+    # recursion is deadbeat: v1 = k ts/(ts b + 2m) (f1 + f0) = 500*0.002/0.32 * 1 = 3.125.
+    filt = AdmittanceFilter(SELF_ALIGNMENT, 0.002)
+    assert filt.step([1.0, 0, 0, 0, 0, 0])[0] == pytest.approx(3.125)
+    assert filt.step([1.0, 0, 0, 0, 0, 0])[0] == pytest.approx(6.25)
+
+
+def test_disabled_axis_never_moves():
+    filt = AdmittanceFilter(SELF_ALIGNMENT)
+    rng = np.random.default_rng(1)
+    for _ in range(1000):
+        v = filt.step(rng.normal(scale=50.0, size=6))
+        assert v[5] == 0.0
+    robot = Meca500(tool=matrix_from_pose([0, 0, 80, 0, 0, 0]))
+    # A torque about the file axis alone moves nothing at all.
+    ctl = AdmittanceController(robot, SELF_ALIGNMENT)
+    q = np.array(Q0)
+    for _ in range(100):
+        cmd = ctl.step(q, np.array([0, 0, 0, 0, 0, 5.0]))
+        assert np.all(cmd.qdot_deg_s == 0.0)
+        q = cmd.q_target_deg
+    np.testing.assert_array_equal(q, Q0)
+    # With every other axis pushed too, the commanded joint rates never turn {H} about z.
+    for _ in range(100):
+        cmd = ctl.step(q, np.array([0.3, -0.2, 0.5, 0.01, -0.02, 5.0]))
+        w_h = robot.tool_jacobian(q) @ np.radians(cmd.qdot_deg_s)
+        assert w_h[5] == pytest.approx(0.0, abs=1e-12)
+        assert np.linalg.norm(w_h[3:5]) > 0.0
+        q = cmd.q_target_deg
+
+
+def test_bad_parameters_are_refused_with_field_and_limit():
+    with pytest.raises(ConfigError, match=r"admittance\.b3"):
+        AdmittanceParams(k=500, b=(80, 80, -1, 80, 80, 80), m=(0.08,) * 6)
+    with pytest.raises(ConfigError, match="exactly 6"):
+        AdmittanceParams(k=500, b=(80,) * 5, m=(0.08,) * 6)
+    with pytest.raises(ConfigError, match=r"admittance\.k"):
+        AdmittanceParams(k=0, b=(80,) * 6, m=(0.08,) * 6)
+
+
+def test_controller_moves_the_tool_tip_along_the_commanded_axis():
+    # f_d = (0, 0, 1 N) in {H}: the tip advances along the file axis at 6.25 mm/s and does not
+    # drift sideways (the Jacobian in {H} and the trapezoidal integration are consistent).
+    tool = matrix_from_pose([0, 0, 60, 0, 0, 0])
+    robot = Meca500(tool=tool)
+    ctl = AdmittanceController(robot, SELF_ALIGNMENT)
+    q = list(Q0)
+    t0 = robot.fk_tool(q)
+    n = 500  # 1 s
+    for _ in range(n):
+        q = ctl.step(q, np.array([0, 0, 1.0, 0, 0, 0])).q_target_deg
+    t1 = robot.fk_tool(q)
+    moved = t0[:3, :3].T @ (t1[:3, 3] - t0[:3, 3])
+    # Trapezoid over v = 3.125, 6.25, 6.25, ... mm/s (eq 4.25 from rest):
+    # ts * (3.125 + 6.25 * (n - 1)) - ts/2 * 6.25 = 6.2375 mm.
+    assert moved[2] == pytest.approx(6.2375, rel=1e-4)
+    assert np.hypot(moved[0], moved[1]) < 1e-2
+
+
+def test_controller_reference_point_rotation_about_that_point():
+    # A pure torque about x at reference point B must rotate about B: B stays where it is.
+    tool = matrix_from_pose([0, 0, 60, 0, 0, 0])
+    robot = Meca500(tool=tool)
+    ref = (0.0, 0.0, -10.0)
+    ctl = AdmittanceController(robot, SELF_ALIGNMENT, ref_point_h_mm=ref)
+    q = list(Q0)
+    shift = np.eye(4)
+    shift[:3, 3] = ref
+    b0 = (robot.fk_tool(q) @ shift)[:3, 3]
+    for _ in range(200):
+        q = ctl.step(q, np.array([0, 0, 0, 0.02, 0, 0])).q_target_deg
+    b1 = (robot.fk_tool(q) @ shift)[:3, 3]
+    # B stays put to within 10 um (the arm's repeatability is 5 um): the trapezoid of eq 4.25
+    # mixes the rates of two neighbouring configurations, a second-order drift.
+    assert np.linalg.norm(b1 - b0) < 0.01
+    # 500/80 rad/s per N*m * 0.02 N*m = 0.125 rad/s; trapezoid from rest over 200 periods:
+    # 0.002 * (0.0625 + 0.125 * 199) - 0.001 * 0.125 = 0.04975 rad, about the x axis of {H}.
+    rel = robot.fk_tool(Q0)[:3, :3].T @ robot.fk_tool(q)[:3, :3]
+    rotvec = Rotation.from_matrix(rel).as_rotvec()
+    np.testing.assert_allclose(rotvec, [0.04975, 0.0, 0.0], atol=1e-4)  # 0.2 % (same drift)
