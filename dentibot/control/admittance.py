@@ -72,11 +72,6 @@ class AdmittanceParams:
         """k/b: mm/s per N (linear) or rad/s per N*m (angular); 0 for a disabled axis."""
         return self.k / self.b[axis] if self.enabled(axis) else 0.0
 
-    def replace(self, **kw) -> AdmittanceParams:
-        d = dict(k=self.k, b=self.b, m=self.m, name=self.name)
-        d.update(kw)
-        return AdmittanceParams(**d)
-
 
 # Table 4.3. The table's m:b = 1:1000 (tau = 1 ms) is what was run; section 4.5's text says
 # 1:500 (tau = 2 ms).
@@ -210,11 +205,19 @@ class AdmittanceController:
         self._filter.reset()
         self._w_prev[:] = 0.0
 
-    def step(self, q_deg, wrench: np.ndarray) -> JointCommand:
-        """Advance one period from the joint angles ``q_deg`` with the wrench (N, N*m)."""
+    def kinematics(self, q_deg):
+        """``(J_H, frames)`` at ``q_deg`` for the reference point: pass it back to ``step``
+        when the caller needs the chain too (one forward pass per tick)."""
+        return self.robot.tool_jacobian(q_deg, self.ref_point_h_mm, with_frames=True)
+
+    def step(self, q_deg, wrench: np.ndarray, kin=None) -> JointCommand:
+        """Advance one period from the joint angles ``q_deg`` with the wrench (N, N*m).
+
+        ``kin`` is ``self.kinematics(q_deg)`` if the caller already has it.
+        """
         twist = self._filter.step(wrench)
         robot = self.robot
-        jh, frames = robot.tool_jacobian(q_deg, self.ref_point_h_mm, with_frames=True)
+        jh, frames = kin if kin is not None else self.kinematics(q_deg)
         if robot.singularity(q_deg, frames=frames).value > 0.2:
             qdot = np.linalg.solve(jh, twist)
         else:
