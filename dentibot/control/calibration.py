@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from dentibot.control.linalg import as_rotation_stack, column_scaled_condition, readonly
+from dentibot.control.linalg import as_rotation_stack, column_scaled_condition, pose_data, readonly
 from dentibot.errors import ConfigError, IdentificationError
 
 #: Default largest accepted condition number of the column-scaled TCP system.
@@ -115,16 +115,10 @@ def calibrate_tcp(
             not a rotation matrix.
         IdentificationError: the orientations are too alike to locate the tip.
     """
-    R = np.asarray(flange_rotations, dtype=float)
-    p = np.asarray(flange_positions_mm, dtype=float)
-    n = R.shape[0] if R.ndim >= 1 else 0
-    if n < 4:
-        raise ConfigError("poses", n, ">= 4 flange poses touching the same point")
-    R = as_rotation_stack(R, "flange_rotations")
-    if p.shape != (n, 3):
-        raise ConfigError(
-            "flange_positions_mm", f"array of shape {p.shape}", f"shape ({n}, 3), one per pose"
-        )
+    R, p = pose_data(flange_rotations, flange_positions_mm, min_poses=4, width=3,
+                     values_field="flange_positions_mm",
+                     poses_need=">= 4 flange poses touching the same point")
+    n = R.shape[0]
 
     A = np.concatenate([R, np.broadcast_to(-np.eye(3), (n, 3, 3))], axis=2).reshape(3 * n, 6)
     b = -p.reshape(3 * n)

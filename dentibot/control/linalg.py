@@ -46,3 +46,24 @@ def column_scaled_condition(A: np.ndarray) -> float:
         return float("inf")
     s = np.linalg.svd(A / norms, compute_uv=False)
     return float(s[0] / s[-1]) if s[-1] > 0.0 else float("inf")
+
+
+def pose_data(rotations: object, values: object, *, min_poses: int, width: int,
+              values_field: str, poses_need: str) -> tuple[np.ndarray, np.ndarray]:
+    """Check n flange rotations and n rows of ``width`` finite measurements taken with them.
+
+    Returns ``(R (n, 3, 3), values (n, width))``; raises ConfigError naming "poses" when there
+    are fewer than ``min_poses`` (``poses_need`` says what is needed), the rotations' field when
+    one is not a rotation, and ``values_field`` when the shapes do not match.
+    """
+    R = np.asarray(rotations, dtype=float)
+    v = np.asarray(values, dtype=float)
+    n = R.shape[0] if R.ndim >= 1 else 0
+    if n < min_poses:
+        raise ConfigError("poses", n, poses_need)
+    R = as_rotation_stack(R, "flange_rotations")
+    if v.shape != (n, width) or not np.all(np.isfinite(v)):
+        raise ConfigError(
+            values_field, f"array of shape {v.shape}", f"shape ({n}, {width}) of finite numbers"
+        )
+    return R, v

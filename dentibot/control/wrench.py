@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dentibot.control.linalg import as_rotation_stack, column_scaled_condition, readonly
+from dentibot.control.linalg import as_rotation_stack, column_scaled_condition, pose_data, readonly
 from dentibot.errors import ConfigError, IdentificationError
 
 #: Standard gravity (m/s^2), to turn the identified weight into a mass.
@@ -233,16 +233,8 @@ def identify_load(
         ConfigError: field "poses" when n < 3 or the arrays do not match; bad rotations.
         IdentificationError: either step is ill-conditioned (poses too alike).
     """
-    R = np.asarray(flange_rotations, dtype=float)
-    w = np.asarray(wrenches, dtype=float)
-    n = R.shape[0] if R.ndim >= 1 else 0
-    if n < 3:
-        raise ConfigError("poses", n, ">= 3 static poses")
-    R = as_rotation_stack(R, "flange_rotations")
-    if w.shape != (n, 6) or not np.all(np.isfinite(w)):
-        raise ConfigError(
-            "wrenches", f"array of shape {w.shape}", f"shape ({n}, 6) of finite numbers"
-        )
+    R, w = pose_data(flange_rotations, wrenches, min_poses=3, width=6, values_field="wrenches",
+                     poses_need=">= 3 static poses")
     forces, torques = w[:, :3], w[:, 3:]
 
     r_m, k, torque_condition = _torque_step(forces, torques, max_condition)
