@@ -82,22 +82,6 @@ class SingularityMeasure:
         return min(self.shoulder_mm / 50.0, self.elbow, self.wrist, 1.0)
 
 
-def _rot_x_rot_z_cols(
-    cols: tuple[tuple[float, float, float], ...],
-    ca: float,
-    sa: float,
-    ct: float,
-    st: float,
-) -> tuple[tuple[float, float, float], ...]:
-    """Columns of ``R @ Rx(alpha) @ Rz(theta)`` given the columns of R."""
-    r0, r1, r2 = cols
-    u = (ca * r1[0] + sa * r2[0], ca * r1[1] + sa * r2[1], ca * r1[2] + sa * r2[2])
-    w = (-sa * r1[0] + ca * r2[0], -sa * r1[1] + ca * r2[1], -sa * r1[2] + ca * r2[2])
-    c0 = (ct * r0[0] + st * u[0], ct * r0[1] + st * u[1], ct * r0[2] + st * u[2])
-    c1 = (-st * r0[0] + ct * u[0], -st * r0[1] + ct * u[1], -st * r0[2] + ct * u[2])
-    return (c0, c1, w)
-
-
 class Meca500:
     """Kinematic model of the Meca500 R3 (Table 3.1) with an optional tool frame {H}.
 
@@ -143,24 +127,44 @@ class Meca500:
         self._tool_cols = tuple(tuple(float(x) for x in tool[:3, k]) for k in range(3))
 
     # ------------------------------------------------------------------ chain
-    def _chain(self, q_deg) -> list[tuple[tuple, tuple]]:
-        """Rotation columns and origin of frames {1}..{6} in {0}, as Python floats."""
-        cols: tuple[tuple[float, float, float], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
-        p = (0.0, 0.0, 0.0)
+    def _chain(self, q_deg, all_frames: bool = True):
+        """Rotation columns and origin of frames {1}..{6} in {0}, as Python floats.
+
+        Each link is ``R <- R Rx(alpha) Rz(theta)``, ``p <- p + a x + d z'``, unrolled on
+        scalars (numpy's per-call overhead dominates for 3x3 matrices). With ``all_frames``
+        false only the flange ``(cols, p)`` is returned (the simulator's per-step call).
+        """
+        x0, x1, x2 = 1.0, 0.0, 0.0
+        y0, y1, y2 = 0.0, 1.0, 0.0
+        z0, z1, z2 = 0.0, 0.0, 1.0
+        p0 = p1 = p2 = 0.0
+        cos, sin, rad = math.cos, math.sin, math.pi / 180.0
         frames = []
         for (ca, sa, a, off, d), qi in zip(self._dh, q_deg):
-            th = math.radians(qi) + off
-            r0, r1, r2 = cols
-            # New origin: p + a * r0 + d * (third column of R Rx(alpha)).
-            w2 = (-sa * r1[0] + ca * r2[0], -sa * r1[1] + ca * r2[1], -sa * r1[2] + ca * r2[2])
-            p = (
-                p[0] + a * r0[0] + d * w2[0],
-                p[1] + a * r0[1] + d * w2[1],
-                p[2] + a * r0[2] + d * w2[2],
-            )
-            cols = _rot_x_rot_z_cols(cols, ca, sa, math.cos(th), math.sin(th))
-            frames.append((cols, p))
-        return frames
+            # R Rx(alpha): y' = ca y + sa z, z' = -sa y + ca z
+            u0, u1, u2 = ca * y0 + sa * z0, ca * y1 + sa * z1, ca * y2 + sa * z2
+            z0, z1, z2 = -sa * y0 + ca * z0, -sa * y1 + ca * z1, -sa * y2 + ca * z2
+            p0 += a * x0 + d * z0
+            p1 += a * x1 + d * z1
+            p2 += a * x2 + d * z2
+            th = qi * rad + off
+            ct, st = cos(th), sin(th)
+            # Rz(theta): x'' = ct x + st y', y'' = -st x + ct y'
+            x0, x1, x2, y0, y1, y2 = (ct * x0 + st * u0, ct * x1 + st * u1, ct * x2 + st * u2,
+                                      -st * x0 + ct * u0, -st * x1 + ct * u1, -st * x2 + ct * u2)
+            if all_frames:
+                frames.append((((x0, x1, x2), (y0, y1, y2), (z0, z1, z2)), (p0, p1, p2)))
+        if all_frames:
+            return frames
+        return ((x0, x1, x2), (y0, y1, y2), (z0, z1, z2)), (p0, p1, p2)
+
+    def flange_floats(self, q_deg):
+        """Flange rotation 0R_6 as three row tuples and position (mm), in Python floats.
+
+        The cheapest forward kinematics (no numpy): for callers that need it every step.
+        """
+        (c0, c1, c2), p = self._chain(q_deg, all_frames=False)
+        return ((c0[0], c1[0], c2[0]), (c0[1], c1[1], c2[1]), (c0[2], c1[2], c2[2])), p
 
     def _check_q(self, q_deg) -> None:
         if len(q_deg) != 6:

@@ -1,0 +1,152 @@
+"""Sample types and device interfaces shared by the real drivers and the simulators.
+
+Every sample carries ``t`` (s, on the monotonic clock of its source) and ``seq`` (a sequence
+number that grows by one per new sample), so that the control task can detect stale or missing
+samples. Units: lengths mm, angles deg, forces N, sensor torques N*m, speeds at the file rpm.
+
+The interfaces are ``typing.Protocol`` classes with async methods (real drivers are asyncio);
+they are ``runtime_checkable`` so tests can check a device against them with ``isinstance``
+(which only checks that the methods exist).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+Vec3 = tuple[float, float, float]
+Vec6 = tuple[float, float, float, float, float, float]
+
+
+@dataclass(frozen=True, slots=True)
+class JointState:
+    """Arm joint positions ``q_deg`` (deg) and velocities ``qdot_deg_s`` (deg/s), J1..J6."""
+
+    t: float
+    seq: int
+    q_deg: Vec6
+    qdot_deg_s: Vec6
+
+
+@dataclass(frozen=True, slots=True)
+class Wrench:
+    """F/T sensor reading in the sensor frame {S}: ``force_n`` (N), ``torque_nm`` (N*m).
+
+    ``status`` is a bit field; bit 0 (:data:`WRENCH_SATURATED`) means a channel is saturated.
+    """
+
+    t: float
+    seq: int
+    force_n: Vec3
+    torque_nm: Vec3
+    status: int = 0
+
+    def as_array(self) -> np.ndarray:
+        """``[fx, fy, fz, tx, ty, tz]`` (N, N*m) as a float array of shape (6,)."""
+        return np.array(self.force_n + self.torque_nm, dtype=float)
+
+
+#: ``Wrench.status`` bit: at least one channel is at the end of its range.
+WRENCH_SATURATED = 0x1
+
+
+@dataclass(frozen=True, slots=True)
+class MotorState:
+    """Handpiece motor, expressed at the file (after the gear).
+
+    ``velocity_rpm`` and ``position_deg`` are at the file; ``current_a`` is the motor current
+    (A); ``fault`` is a human-readable fault text or None.
+    """
+
+    t: float
+    seq: int
+    velocity_rpm: float
+    position_deg: float
+    current_a: float
+    enabled: bool
+    fault: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class AuxState:
+    """Auxiliary I/O: foot pedal, emergency stop, patient platform position (mm)."""
+
+    t: float
+    seq: int
+    pedal: bool
+    estop: bool
+    platform_mm: Vec3
+
+
+@runtime_checkable
+class Arm(Protocol):
+    """A 6-DoF arm driven in joint space (Meca500: MoveJointsVel / MoveJoints)."""
+
+    async def read(self) -> JointState:
+        """Newest joint state."""
+        ...
+
+    async def move_joints_vel(self, qdot_deg_s) -> None:
+        """Joint velocities (deg/s); they time out (SetVelTimeout) unless repeated."""
+        ...
+
+    async def move_joints(self, q_deg) -> None:
+        """Move to joint positions (deg)."""
+        ...
+
+    async def stop(self) -> None:
+        """Decelerate to rest and drop pending motion."""
+        ...
+
+
+@runtime_checkable
+class ForceSensor(Protocol):
+    """A 6-axis force/torque sensor (ATI Mini40), readings in its frame {S}."""
+
+    async def read(self) -> Wrench:
+        """Newest wrench (N, N*m)."""
+        ...
+
+    async def bias(self) -> None:
+        """Tare: the current load reads zero from now on."""
+        ...
+
+
+@runtime_checkable
+class Handpiece(Protocol):
+    """The motorised handpiece turning the file; speeds and angles at the file."""
+
+    async def read(self) -> MotorState:
+        """Newest motor state."""
+        ...
+
+    async def set_velocity(self, rpm: float) -> None:
+        """Turn the file at ``rpm`` (positive = cutting direction, clockwise)."""
+        ...
+
+    async def move_relative(self, deg: float) -> None:
+        """Turn the file by ``deg`` (e.g. -90 for the reversal), then hold."""
+        ...
+
+    async def stop(self) -> None:
+        """Stop turning."""
+        ...
+
+
+@runtime_checkable
+class AuxIO(Protocol):
+    """Pedal, emergency stop, indicators and the patient platform."""
+
+    async def read(self) -> AuxState:
+        """Newest auxiliary state."""
+        ...
+
+    async def set_indicator(self, name: str, on: bool) -> None:
+        """Switch an indicator (lamp, buzzer) on or off."""
+        ...
+
+    async def set_platform(self, mm) -> None:
+        """Command the platform position (x, y, z mm)."""
+        ...

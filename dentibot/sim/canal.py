@@ -1,0 +1,266 @@
+"""Root canal in a tooth phantom: centreline, tapered lumen, pulp ("red area"), contact, cutting.
+
+Phantom frame {P}: origin at the canal orifice, z the nominal insertion direction. The canal
+starts straight along ``t0 = Rx(tilt) z``; a curved canal continues after ``curve_start_mm``
+as a circular arc of radius ``curve_radius_mm`` bending towards ``u = x`` by ``curve_angle_deg``.
+Depth ``s`` (mm) is arc length from the orifice.
+
+Discretisation: depth slices of ``slice_mm``. Per slice the lumen radius ``R`` (mm, axisymmetric)
+grows as the file cuts. The remaining pulp ("red area") of a slice is the cross-section between
+the lumen and the target preparation, ``pi (Rt^2 - R^2)`` (mm^2); completeness (eq 6.1) is
+``(red before - red now) / red before`` summed over the slices down to the working length.
+
+Contact and cutting (per step, vectorised over the slices the file occupies):
+- the file is a straight line in the straight part of the canal (its lateral offset ``e(s)``
+  from the centreline is linear in depth) and follows the centreline in the curved part (a
+  flexible file is guided by the lumen; its bending counts for fatigue only - assumption);
+- lateral: per slice the far-side penetration ``|e| + r_f - R`` minus the near-side one pushes
+  the file back towards the axis with the wall stiffness, in series with the file's cantilever
+  stiffness 3EI/L^3 at the penetration-weighted contact point;
+- engagement ``A = sum(max(0, r_f - R)) ds`` (mm^2): the file diameter profile overlapping the
+  lumen. Torque and axial resistance grow with A, the feed rate and the debris;
+- cutting (forward rotation only): ``dR = kappa * revolutions * overlap``; the removed volume
+  becomes debris, which raises torque until reversal (``c_rev`` per reverse revolution),
+  withdrawal (decay length ``withdraw_mm``) or leaving the canal clears it;
+- the canal bottom (``working_length_mm + apex_margin_mm``) is a stiff axial contact.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from dentibot.errors import ConfigError
+from dentibot.sim.nitifile import WORKING_PART_MM, NiTiFile
+
+
+@dataclass(frozen=True)
+class CanalParams:
+    working_length_mm: float = 16.0
+    # assumption: the bottom (apical constriction) 0.5 mm beyond the working length.
+    apex_margin_mm: float = 0.5
+    tilt_deg: float = 0.0
+    curve_start_mm: float | None = None
+    curve_radius_mm: float = 8.0
+    curve_angle_deg: float = 0.0
+    # assumption: initial lumen after a #15 hand file (glide path), ISO 15 with 2 % taper.
+    initial_apical_mm: float = 0.15
+    initial_taper: float = 0.02
+    # assumption: target preparation = the shape of a #25/.06 file at working length.
+    target_apical_mm: float = 0.25
+    target_taper: float = 0.06
+    slice_mm: float = 0.25
+    # assumption: wall stiffness 20 N/mm per mm of contact length (acrylic/dentin surface
+    # under a ~0.5 mm file; far stiffer than the file, so the file's compliance dominates).
+    wall_n_mm_per_mm: float = 20.0
+    # assumption: tip outside the lumen by more than this lands on the chamber floor.
+    access_margin_mm: float = 1.0
+    # assumption: canal bottom / chamber floor axial stiffness (N/mm).
+    bottom_n_mm: float = 20.0
+    # Cutting and resistance constants, all assumptions chosen so that a #25/.06 file fully
+    # engaged in a #15/.02 canal needs 20-40 mNm (the thesis's tau_d 40-50 mNm range):
+    kappa_per_rev: float = 0.15        # overlap fraction cut per forward revolution
+    torque_mnm_per_mm2: float = 8.0    # torque per mm^2 of engagement
+    torque_mnm_s_per_mm3: float = 20.0  # torque per (mm/s of feed * mm^2 of engagement)
+    torque_mnm_per_mm3: float = 30.0   # torque per mm^3 of debris in the canal
+    friction_mu: float = 0.3           # wall friction: torque mu |F_lat| r_file (N*mm = mNm)
+    reverse_factor: float = 0.3        # reverse rotation resists this fraction, does not cut
+    axial_n_per_mm2: float = 0.1       # axial resistance per mm^2 of engagement
+    axial_n_s_per_mm3: float = 0.5     # axial resistance per (mm/s of feed * mm^2 engaged)
+    axial_n_per_mm3: float = 0.5       # axial resistance per mm^3 of debris
+    c_rev_per_rev: float = 4.0         # debris cleared: exp(-c_rev * reverse revolutions)
+    c_fwd_per_rev: float = 0.02        # forward rotation augers a little debris out
+    withdraw_mm: float = 0.5           # debris cleared: exp(-withdrawal / withdraw_mm)
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.working_length_mm <= 30.0:
+            raise ConfigError("canal.working_length_mm", self.working_length_mm, "0 < WL <= 30")
+        if not 0.0 < self.slice_mm <= 1.0:
+            raise ConfigError("canal.slice_mm", self.slice_mm, "0 < slice <= 1 mm")
+        if self.curve_start_mm is not None and not (
+            0.0 <= self.curve_start_mm < self.working_length_mm and self.curve_radius_mm > 0.0
+        ):
+            raise ConfigError("canal.curve_start_mm", self.curve_start_mm,
+                              "0 <= start < working length, radius > 0")
+
+
+@dataclass
+class Interaction:
+    """What the canal does to the file this step (phantom frame {P}, N, mm, mNm)."""
+
+    depth_mm: float = -1.0          # tip depth along the canal (arc length), < 0 outside
+    f_lat: tuple = (0.0, 0.0, 0.0)  # lateral force on the file, {P}
+    contact_from_tip_mm: float = 0.0
+    f_axial_n: float = 0.0          # pushes the file out, along -file axis
+    resist_mnm: float = 0.0         # torque the canal resists forward rotation with (>= 0)
+    engagement_mm2: float = 0.0
+    max_strain: float = 0.0
+
+
+class Canal:
+    """Tooth phantom canal state (lumen per slice, debris) and its file interaction."""
+
+    def __init__(self, params: CanalParams = CanalParams()) -> None:
+        self.p = p = params
+        ds = p.slice_mm
+        self.bottom_mm = p.working_length_mm + p.apex_margin_mm
+        n = math.ceil(self.bottom_mm / ds)
+        self.n = n
+        self.s = (np.arange(n) + 0.5) * ds                       # slice centres (mm)
+        self._sz = self.s.astype(complex)
+        wl = p.working_length_mm
+        dist_wl = np.maximum(wl - self.s, 0.0)
+        self.R0 = (p.initial_apical_mm + p.initial_taper * dist_wl) / 2.0
+        self.Rt = (p.target_apical_mm + p.target_taper * dist_wl) / 2.0
+        self.R = self.R0.copy()
+        self.in_wl = self.s <= wl
+        self.red0 = float(self._red().sum())
+        self.debris_mm3 = 0.0
+        ct, st = math.cos(math.radians(p.tilt_deg)), math.sin(math.radians(p.tilt_deg))
+        self.t0 = (0.0, -st, ct)                                   # Rx(tilt) z
+        self.u = (1.0, 0.0, 0.0)                                   # Rx(tilt) x
+        self.v = (0.0, ct, st)                                     # t0 x u
+        if p.curve_start_mm is None or p.curve_angle_deg == 0.0:
+            self.n_straight = n
+            self.kappa = np.zeros(n)
+        else:
+            self.n_straight = int(p.curve_start_mm / ds)
+            arc_end = p.curve_start_mm + p.curve_radius_mm * math.radians(p.curve_angle_deg)
+            self.kappa = np.where((self.s >= p.curve_start_mm) & (self.s <= arc_end),
+                                  1.0 / p.curve_radius_mm, 0.0)
+        self.curved = bool(self.kappa.any())
+        self._last_depth = -1.0
+        self._file_key = None
+
+    # ------------------------------------------------------------------ pulp
+    def _red(self) -> np.ndarray:
+        return np.where(self.in_wl, np.pi * np.maximum(self.Rt**2 - self.R**2, 0.0), 0.0)
+
+    def red_area_mm2(self) -> np.ndarray:
+        """Remaining uncut pulp cross-section per slice (mm^2), slices to the working length."""
+        return self._red()[self.in_wl]
+
+    def completeness(self) -> float:
+        """Eq 6.1: (red before - red now) / red before, in [0, 1]."""
+        return (self.red0 - float(self._red().sum())) / self.red0
+
+    def centreline_point(self, depth_mm: float) -> tuple[float, float, float]:
+        """Centreline point at arc length ``depth_mm`` in {P} (mm)."""
+        p = self.p
+        t0, u = self.t0, self.u
+        if not self.curved or depth_mm <= p.curve_start_mm:
+            return tuple(depth_mm * a for a in t0)
+        rho = p.curve_radius_mm
+        phi = min(depth_mm - p.curve_start_mm, rho * math.radians(p.curve_angle_deg)) / rho
+        rest = depth_mm - p.curve_start_mm - rho * phi
+        along = p.curve_start_mm + rho * math.sin(phi) + rest * math.cos(phi)
+        side = rho * (1.0 - math.cos(phi)) + rest * math.sin(phi)
+        return tuple(along * a + side * b for a, b in zip(t0, u))
+
+    # ------------------------------------------------------------------ interaction
+    def _prepare(self, f: NiTiFile) -> None:
+        # h_i = -(taper/2) s_i - R_i, so that r_f - R = h_i + (d_tip + taper s_tip)/2.
+        self._h = -(f.taper / 2.0) * self.s - self.R
+        self._file_key = f
+
+    def interact(self, tip, axis, f: NiTiFile, dt: float) -> Interaction:
+        """Geometry and resistances for the file at ``tip`` (mm) along unit ``axis`` in {P}.
+
+        ``axis`` points from the handpiece to the tip (into the tooth). ``dt`` (s) is the
+        period, used for the feed rate.
+        """
+        if self._file_key is not f:
+            self._prepare(f)
+        p = self.p
+        t0, u, v = self.t0, self.u, self.v
+        s_tip = tip[0] * t0[0] + tip[1] * t0[1] + tip[2] * t0[2]
+        out = Interaction(depth_mm=s_tip)
+        self._win = (0, 0, None)
+        feed = (s_tip - self._last_depth) / dt if self._last_depth > -1.0 else 0.0
+        ds_step = s_tip - self._last_depth
+        self._last_depth = s_tip
+        if s_tip <= 0.0:
+            self.debris_mm3 = 0.0
+            return out
+        if ds_step < 0.0 and self.debris_mm3:
+            self.debris_mm3 *= math.exp(ds_step / p.withdraw_mm)
+        eu = tip[0] * u[0] + tip[1] * u[1] + tip[2] * u[2]
+        ev = tip[0] * v[0] + tip[1] * v[1] + tip[2] * v[2]
+        ds = p.slice_mm
+        i_tip = min(int(s_tip / ds), self.n)
+        R_tip = float(self.R[max(i_tip - 1, 0)])
+        if math.hypot(eu, ev) > R_tip + p.access_margin_mm:
+            out.depth_mm = -1.0  # on the chamber floor, not in the canal
+            out.f_axial_n = p.bottom_n_mm * s_tip
+            return out
+        at = axis[0] * t0[0] + axis[1] * t0[1] + axis[2] * t0[2]
+        at = max(at, 0.2)
+        au = (axis[0] * u[0] + axis[1] * u[1] + axis[2] * u[2]) / at
+        av = (axis[0] * v[0] + axis[1] * v[1] + axis[2] * v[2]) / at
+        i0 = max(int((s_tip - WORKING_PART_MM) / ds), 0)
+        c = (f.tip_diameter_mm + f.taper * s_tip) / 2.0
+        g = self._h[i0:i_tip] + c                  # r_f - R per slice
+        overlap = np.maximum(g, 0.0)
+        area = float(overlap.sum()) * ds
+        out.engagement_mm2 = area
+        i1 = min(i_tip, self.n_straight)
+        if i1 > i0:
+            # offset of the (straight) file from the centreline, linear in depth, as a complex
+            # number u + i v (one numpy call per operation instead of two)
+            ez = self._sz[i0:i1] * complex(au, av) + complex(eu - s_tip * au, ev - s_tip * av)
+            en = np.abs(ez) + 1e-12
+            gg = g[: i1 - i0]
+            x = gg + en
+            net = np.minimum(np.maximum(x, 0.0), en + en)   # far minus near penetration
+            tot = float(net.sum())
+            if tot > 1e-12:
+                fz = -complex(np.dot(net / en, ez))
+                s_c = float(np.dot(net, self.s[i0:i1])) / tot
+                k_wall = p.wall_n_mm_per_mm * ds * float(np.count_nonzero(net))
+                from_tip = s_tip - s_c
+                k_file = f.lateral_stiffness_n_mm(from_tip)
+                scale = p.wall_n_mm_per_mm * ds * k_file / (k_wall + k_file)
+                fu, fv = fz.real * scale, fz.imag * scale
+                out.f_lat = (fu * u[0] + fv * v[0], fu * u[1] + fv * v[1], fu * u[2] + fv * v[2])
+                out.contact_from_tip_mm = from_tip
+        flat = math.sqrt(out.f_lat[0] ** 2 + out.f_lat[1] ** 2 + out.f_lat[2] ** 2)
+        deb = self.debris_mm3
+        fin = max(feed, 0.0)
+        out.resist_mnm = (p.torque_mnm_per_mm2 * area + p.torque_mnm_s_per_mm3 * fin * area
+                          + p.torque_mnm_per_mm3 * deb
+                          + p.friction_mu * flat * f.diameter_mm(out.contact_from_tip_mm) / 2.0)
+        fa = (p.axial_n_per_mm2 * area + p.axial_n_per_mm3 * deb) * feed / (abs(feed) + 0.05)
+        fa += p.axial_n_s_per_mm3 * feed * area
+        if s_tip > self.bottom_mm:
+            fa += p.bottom_n_mm * (s_tip - self.bottom_mm)
+        out.f_axial_n = fa
+        if self.curved:
+            strain = self.kappa[i0:i_tip] * (g + self.R[i0:i_tip])  # r_f / rho = d / (2 rho)
+            out.max_strain = float(strain.max()) if strain.size else 0.0
+        self._win = (i0, i_tip, overlap)
+        return out
+
+    def cut(self, revolutions: float) -> float:
+        """Apply ``revolutions`` of file rotation (signed, + cutting) after ``interact``.
+
+        Returns the removed volume (mm^3).
+        """
+        p = self.p
+        if revolutions < 0.0:
+            if self.debris_mm3:
+                self.debris_mm3 *= math.exp(p.c_rev_per_rev * revolutions)
+            return 0.0
+        if revolutions == 0.0 or self._last_depth <= 0.0:
+            return 0.0
+        i0, i1, overlap = self._win
+        if i1 <= i0:
+            return 0.0
+        dr = (p.kappa_per_rev * revolutions) * overlap
+        r = self.R[i0:i1]
+        dv = 2.0 * math.pi * p.slice_mm * float(np.dot(r, dr))
+        r += dr
+        self._h[i0:i1] -= dr
+        self.debris_mm3 = self.debris_mm3 * math.exp(-p.c_fwd_per_rev * revolutions) + dv
+        return dv

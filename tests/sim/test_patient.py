@@ -1,0 +1,43 @@
+"""Patient / phantom motion profiles."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dentibot.sim import HeadMotion, StewartSquare, World, WorldConfig
+
+
+def test_stewart_square_timing_matches_the_thesis():
+    sq = StewartSquare()
+    assert sq.duration_s == pytest.approx(87.0)   # 20 + 15 + 12 + 10 s, three 10 s pauses
+    assert sq.offset_mm(2.5) == pytest.approx((7.5, 0.0, 0.0))     # 3 mm/s along x
+    assert sq.offset_mm(5.0) == pytest.approx((15.0, 0.0, 0.0))
+    assert sq.offset_mm(10.0) == pytest.approx((15.0, 0.0, 15.0))
+    assert sq.offset_mm(25.0) == pytest.approx((0.0, 0.0, 0.0))    # pausing
+    assert sq.offset_mm(30.0 + 15.0 / 4.0 / 2) == pytest.approx((7.5, 0.0, 0.0))  # 4 mm/s
+    assert sq.offset_mm(77.0 + 2.5) == pytest.approx((15.0, 0.0, 0.0))           # 6 mm/s
+    assert sq.offset_mm(100.0) == (0.0, 0.0, 0.0)
+
+
+def test_phantom_follows_the_profile_in_the_world():
+    w = World(WorldConfig(motion="square"))
+    o0 = np.array(w.phantom_origin_0())
+    w.run(2.5)
+    np.testing.assert_allclose(np.array(w.phantom_origin_0()) - o0, (7.5, 0.0, 0.0), atol=1e-9)
+
+
+def test_head_motion_is_smooth_small_and_seeded():
+    a = HeadMotion(np.random.default_rng(1))
+    b = HeadMotion(np.random.default_rng(1))
+    c = HeadMotion(np.random.default_rng(2))
+    t = np.arange(0.0, 120.0, 0.002)
+    xa = np.array([a.offset_mm(x) for x in t[::50]])
+    assert a.offset_mm(0.0) == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
+    assert a.offset_mm(12.3) == b.offset_mm(12.3) != c.offset_mm(12.3)
+    assert 0.3 < np.std(xa, axis=0).min() and np.abs(xa).max() < 8.0
+    # smooth: max speed bounded by sum of amplitude * omega (<= 4 * 0.71 * 2 pi 0.5 mm/s)
+    v = np.diff(xa, axis=0) / 0.1
+    assert np.abs(v).max() < 4 * math.sqrt(0.5) * 2 * math.pi * 0.5
