@@ -148,16 +148,3 @@ class SimArmModel:
         """Quantised (q_deg, qdot_deg_s) as the controller sees them."""
         r = self.p.encoder_res_deg
         return (tuple(round(x / r) * r for x in self.q), tuple(self.qdot))
-
-
-class FlangeFK:
-    """Flange pose (rows of 0R_6, position mm) in Python floats, every world step.
-
-    A thin callable over ``Meca500.flange_floats``: the one forward chain of the project.
-    """
-
-    def __init__(self, robot: Meca500 | None = None) -> None:
-        self._fk = (robot or Meca500()).flange_floats
-
-    def __call__(self, q_deg):
-        return self._fk(q_deg)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dentibot.control.feedrate import GEAR_RATIO, KM_MNM_PER_A
+from dentibot.control.feedrate import GEAR_RATIO, KM_MNM_PER_A, file_torque_from_current
 from dentibot.errors import ConfigError
 
 #: Largest file speed (rpm) the handpiece accepts (thesis 5.1).
@@ -49,8 +49,8 @@ class HandpieceParams:
 
     @property
     def torque_per_amp_mnm(self) -> float:
-        """File torque per motor ampere, Km GR efficiency (mNm/A)."""
-        return self.km_mnm_per_a * self.gear_ratio * self.efficiency
+        """File torque per motor ampere, Km GR efficiency (mNm/A), eq 5.4-5.5."""
+        return file_torque_from_current(1.0, self.efficiency, self.km_mnm_per_a, self.gear_ratio)
 
     def file_torque_estimate_mnm(self, current_a: float, velocity_rpm: float) -> float:
         """The estimate consistent with this model (see module docstring)."""

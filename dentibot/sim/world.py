@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dentibot.control.kinematics import Meca500
-from dentibot.sim.arm import ArmParams, FlangeFK, SimArmModel
+from dentibot.sim.arm import ArmParams, SimArmModel
 from dentibot.sim.canal import Canal, CanalParams, Interaction
 from dentibot.sim.ftsensor import FTSensorModel, FTSensorParams
 from dentibot.sim.handpiece import HandpieceModel, HandpieceParams
@@ -70,7 +70,7 @@ class World:
         s_sensor, s_motor, s_patient = root.spawn(3)
         self.kin = Meca500(tool=cfg.tool)
         self.arm = SimArmModel(self.kin, cfg.q0_deg, cfg.arm)
-        self._fk = FlangeFK()
+        self._fk = self.kin.flange_floats
         self.sensor = FTSensorModel(cfg.sensor, np.random.default_rng(s_sensor))
         self.handpiece = HandpieceModel(cfg.handpiece, np.random.default_rng(s_motor))
         self.file = cfg.file

@@ -10,7 +10,6 @@ from conftest import drive
 
 from dentibot.errors import ConfigError
 from dentibot.sim import HandpieceModel, HandpieceParams, World, WorldConfig
-from dentibot.sim.arm import FlangeFK
 
 
 def _hp(**kw) -> HandpieceModel:
@@ -72,8 +71,8 @@ def test_a_weak_motor_stalls_instead_of_breaking_the_file():
 
 
 def test_float_fk_matches_the_kinematics_module():
-    fk = FlangeFK()
     world = World(WorldConfig())
+    fk = world.kin.flange_floats
     rng = np.random.default_rng(0)
     for _ in range(20):
         q = rng.uniform(-150, 150, 6)
