@@ -166,6 +166,12 @@ class Meca500:
         (c0, c1, c2), p = self._chain(q_deg, all_frames=False)
         return ((c0[0], c1[0], c2[0]), (c0[1], c1[1], c2[1]), (c0[2], c1[2], c2[2])), p
 
+    def tool_tip_axis(self, frames) -> tuple[tuple, tuple]:
+        """File tip 0p_H (mm) and file axis (the z axis of {H}) in {0}, from ``frames`` as
+        returned by ``tool_jacobian(..., with_frames=True)`` (no second forward pass)."""
+        cols, o6 = frames[-1]
+        return _add(o6, _mul_cols(cols, self._tool_p)), _mul_cols(cols, self._tool_cols[2])
+
     def _check_q(self, q_deg) -> None:
         if len(q_deg) != 6:
             raise KinematicsError(f"expected 6 joint angles, got {len(q_deg)}")
@@ -359,6 +365,23 @@ def pose_from_matrix(t) -> np.ndarray:
         warnings.simplefilter("ignore", UserWarning)  # scipy's "Gimbal lock detected"
         angles = Rotation.from_matrix(t[:3, :3]).as_euler("XYZ", degrees=True)
     return np.concatenate([t[:3, 3], angles])
+
+
+def euler_xyz_deg(R) -> tuple[float, float, float]:
+    """Mobile XYZ Euler angles (deg) of a rotation matrix, the same as :func:`pose_from_matrix`
+    (scipy) gives, in closed form for one matrix: ``R = Rx(a) Ry(b) Rz(g)`` has
+    ``R[0][2] = sin b``, ``R[1][2] = -sin a cos b``, ``R[2][2] = cos a cos b``,
+    ``R[0][1] = -cos b sin g``, ``R[0][0] = cos b cos g``. At ``cos b = 0`` g is 0 and
+    ``a = atan2(R[2][1], R[1][1])``. For the 500 Hz telemetry, where scipy's per-call cost
+    (about 50 us) would be most of the tick."""
+    sb = max(-1.0, min(1.0, R[0][2]))
+    b = math.asin(sb)
+    if math.hypot(R[0][0], R[0][1]) > 1e-9:
+        a = math.atan2(-R[1][2], R[2][2])
+        g = math.atan2(-R[0][1], R[0][0])
+    else:
+        a, g = math.atan2(R[2][1], R[1][1]), 0.0
+    return math.degrees(a), math.degrees(b), math.degrees(g)
 
 
 def damped_least_squares(j: np.ndarray, v: np.ndarray, sigma_min_ok: float = 0.05,

@@ -118,6 +118,7 @@ class Canal:
         self.in_wl = self.s <= wl
         self.red0 = float(self._red().sum())
         self.debris_mm3 = 0.0
+        self._entered = False
         ct, st = math.cos(math.radians(p.tilt_deg)), math.sin(math.radians(p.tilt_deg))
         self.t0 = (0.0, -st, ct)                                   # Rx(tilt) z
         self.u = (1.0, 0.0, 0.0)                                   # Rx(tilt) x
@@ -183,6 +184,7 @@ class Canal:
         self._last_depth = s_tip
         if s_tip <= 0.0:
             self.debris_mm3 = 0.0
+            self._entered = False
             return out
         if ds_step < 0.0 and self.debris_mm3:
             self.debris_mm3 *= math.exp(ds_step / p.withdraw_mm)
@@ -191,10 +193,14 @@ class Canal:
         ds = p.slice_mm
         i_tip = min(int(s_tip / ds), self.n)
         R_tip = float(self.R[max(i_tip - 1, 0)])
-        if math.hypot(eu, ev) > R_tip + p.access_margin_mm:
-            out.depth_mm = -1.0  # on the chamber floor, not in the canal
-            out.f_axial_n = p.bottom_n_mm * s_tip
-            return out
+        if not self._entered:
+            if math.hypot(eu, ev) > R_tip + p.access_margin_mm:
+                out.depth_mm = -1.0  # on the chamber floor, not in the canal
+                out.f_axial_n = p.bottom_n_mm * s_tip
+                return out
+            # Once the tip is in the canal it stays there (it is inside the tooth): a large
+            # offset from the centreline bends the file against the wall instead.
+            self._entered = True
         at = axis[0] * t0[0] + axis[1] * t0[1] + axis[2] * t0[2]
         at = max(at, 0.2)
         au = (axis[0] * u[0] + axis[1] * u[1] + axis[2] * u[2]) / at

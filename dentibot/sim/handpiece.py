@@ -21,7 +21,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dentibot.control.feedrate import GEAR_RATIO, KM_MNM_PER_A, file_torque_from_current
+from dentibot.control.feedrate import (
+    GEAR_RATIO,
+    KM_MNM_PER_A,
+    file_torque_estimate_mnm,
+    file_torque_from_current,
+)
 from dentibot.errors import ConfigError
 
 #: Largest file speed (rpm) the handpiece accepts (thesis 5.1).
@@ -54,8 +59,9 @@ class HandpieceParams:
 
     def file_torque_estimate_mnm(self, current_a: float, velocity_rpm: float) -> float:
         """The estimate consistent with this model (see module docstring)."""
-        sgn = (velocity_rpm > 0.5) - (velocity_rpm < -0.5)
-        return (current_a - self.friction_current_a * sgn) * self.torque_per_amp_mnm
+        return file_torque_estimate_mnm(current_a, velocity_rpm, self.efficiency,
+                                        self.friction_current_a, self.km_mnm_per_a,
+                                        self.gear_ratio)
 
 
 class HandpieceModel:

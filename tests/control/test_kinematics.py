@@ -211,3 +211,33 @@ def test_limits_are_the_vendor_figures():
     assert m.joint_speed_limits_deg_s.tolist() == [150, 150, 180, 300, 300, 500]
     assert m.within_limits([0, 90, 70, 0, 0, 0])
     assert not m.within_limits([0, 91, 0, 0, 0, 0])
+
+
+def test_tool_tip_axis_from_frames_matches_fk_tool():
+    tool = matrix_from_pose([3.0, -2.0, 95.0, 10.0, -20.0, 5.0])
+    robot = Meca500(tool=tool)
+    q = [20, -10, 30, 40, 50, 60]
+    _, frames = robot.tool_jacobian(q, with_frames=True)
+    tip, axis = robot.tool_tip_axis(frames)
+    t = robot.fk(q) @ tool
+    np.testing.assert_allclose(tip, t[:3, 3], atol=1e-9)
+    np.testing.assert_allclose(axis, t[:3, 2], atol=1e-12)
+
+
+def test_closed_form_euler_matches_scipy_including_gimbal_lock():
+    from dentibot.control.kinematics import euler_xyz_deg
+
+    rng = np.random.default_rng(5)
+    mats = list(Rotation.random(200, random_state=7).as_matrix())
+    mats += [Meca500().fk([0, 0, 0, 0, 0, 0])[:3, :3], np.eye(3)]
+    mats += [Rotation.from_euler("XYZ", [rng.uniform(-180, 180), s * 90, rng.uniform(-180, 180)],
+                                 degrees=True).as_matrix() for s in (-1, 1)]
+    for R in mats:
+        T = np.eye(4)
+        T[:3, :3] = R
+        mine = np.array(euler_xyz_deg(R.tolist()))
+        ref = pose_from_matrix(T)[3:]
+        # same rotation whatever the angles (gimbal lock shares a and g)
+        np.testing.assert_allclose(
+            Rotation.from_euler("XYZ", mine, degrees=True).as_matrix(), R, atol=1e-9)
+        np.testing.assert_allclose(mine, ref, atol=1e-6)

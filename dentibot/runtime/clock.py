@@ -1,0 +1,163 @@
+"""The control task's clocks (ARCHITECTURE "Time") and its deadline accounting.
+
+- :class:`RealTimeClock`: absolute deadlines ``t0 + k * period``. It sleeps coarsely with
+  ``asyncio.sleep`` until ``spin_s`` before the deadline, then finishes by yielding to the loop
+  (``asyncio.sleep(0)``) until the deadline passes: the event loop keeps serving the device
+  streams while it waits, and lateness stays in microseconds. Plain ``asyncio.sleep(period)``
+  rounds its timeout up to whole milliseconds (epoll), which at 500 Hz is most of a period.
+  A tick that starts more than a whole period late is counted as missed and the schedule
+  skips ahead (no burst of catch-up ticks).
+- :class:`LockStepClock`: simulated time; ``wait_next`` steps the world by exactly one period
+  (as fast as the machine allows) and is never late.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import bisect
+import math
+import time
+from collections.abc import Callable
+
+from dentibot.errors import ConfigError
+
+#: Upper edges (us) of the lateness histogram bins; the last bin is open.
+LATENESS_BINS_US = (5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000, 10000, 20000, 50000)
+
+
+class DeadlineStats:
+    """Lateness histogram, overruns and compute time of the control task.
+
+    An overrun is a tick that did not finish before the next deadline (lateness + compute time
+    > period), or a deadline skipped entirely.
+    """
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+        self.reset()
+
+    def reset(self) -> None:
+        self.ticks = 0
+        self.overruns = 0
+        self.skipped = 0
+        self.max_lateness_us = 0.0
+        self.max_compute_us = 0.0
+        self.hist = [0] * (len(LATENESS_BINS_US) + 1)
+        self._compute_sum_us = 0.0
+
+    def add(self, lateness_s: float, compute_s: float) -> bool:
+        """Account one tick; returns True when it overran."""
+        late_us = max(lateness_s, 0.0) * 1e6
+        comp_us = compute_s * 1e6
+        self.ticks += 1
+        self.hist[bisect.bisect_left(LATENESS_BINS_US, late_us)] += 1
+        self.max_lateness_us = max(self.max_lateness_us, late_us)
+        self.max_compute_us = max(self.max_compute_us, comp_us)
+        self._compute_sum_us += comp_us
+        over = lateness_s + compute_s > self.period_s
+        self.overruns += over
+        return over
+
+    def lateness_quantile_us(self, q: float) -> float:
+        """Upper edge of the histogram bin holding quantile ``q`` (a bound, not an estimate)."""
+        if not self.ticks:
+            return 0.0
+        need = math.ceil(q * self.ticks)
+        seen = 0
+        for i, n in enumerate(self.hist):
+            seen += n
+            if seen >= need:
+                return float(LATENESS_BINS_US[i]) if i < len(LATENESS_BINS_US) \
+                    else self.max_lateness_us
+        return self.max_lateness_us
+
+    def as_dict(self) -> dict:
+        return {
+            "ticks": self.ticks, "overruns": self.overruns, "skipped": self.skipped,
+            "lateness_us_p50": self.lateness_quantile_us(0.5),
+            "lateness_us_p99": self.lateness_quantile_us(0.99),
+            "lateness_us_max": self.max_lateness_us,
+            "compute_us_mean": self._compute_sum_us / self.ticks if self.ticks else 0.0,
+            "compute_us_max": self.max_compute_us,
+            "histogram_us": dict(zip([*map(str, LATENESS_BINS_US), "inf"], self.hist)),
+        }
+
+
+class Clock:
+    """``now()`` (s since start) and ``wait_next()`` -> lateness of the new tick (s)."""
+
+    period_s: float
+
+    def start(self) -> None:
+        raise NotImplementedError
+
+    def now(self) -> float:
+        raise NotImplementedError
+
+    async def wait_next(self) -> float:
+        raise NotImplementedError
+
+
+def _check_period(period_s: float) -> float:
+    if not 0.0002 <= period_s <= 0.1:
+        raise ConfigError("control.period_s", period_s, "0.0002..0.1 s (10..5000 Hz)")
+    return float(period_s)
+
+
+class RealTimeClock(Clock):
+    def __init__(self, period_s: float = 0.002, spin_s: float = 0.0015,
+                 clock: Callable[[], float] = time.perf_counter) -> None:
+        self.period_s = _check_period(period_s)
+        self.spin_s = min(spin_s, period_s)
+        self._clock = clock
+        self.skipped = 0
+        self.start()
+
+    def start(self) -> None:
+        self._t0 = self._clock()
+        self._k = 0
+
+    def now(self) -> float:
+        return self._clock() - self._t0
+
+    async def wait_next(self) -> float:
+        self._k += 1
+        p = self.period_s
+        deadline = self._t0 + self._k * p
+        now = self._clock()
+        if now - deadline >= p:                 # a whole period late: skip ahead
+            missed = int((now - deadline) / p)
+            self.skipped += missed
+            self._k += missed
+            deadline += missed * p
+        coarse = deadline - self.spin_s - now
+        if coarse > 0.0:
+            await asyncio.sleep(coarse)
+        while self._clock() < deadline:
+            await asyncio.sleep(0)
+        return self._clock() - deadline
+
+
+class LockStepClock(Clock):
+    """Simulated time: ``step()`` advances the world by one period per tick."""
+
+    def __init__(self, step: Callable[[], None], period_s: float = 0.002,
+                 yield_every: int = 1) -> None:
+        self.period_s = _check_period(period_s)
+        self._step = step
+        self._yield_every = max(1, int(yield_every))
+        self.skipped = 0
+        self.start()
+
+    def start(self) -> None:
+        self._k = 0
+
+    def now(self) -> float:
+        return self._k * self.period_s
+
+    async def wait_next(self) -> float:
+        self._step()
+        self._k += 1
+        if self._k % self._yield_every == 0:
+            await asyncio.sleep(0)   # let the other tasks (UI, operator commands) run
+        return 0.0

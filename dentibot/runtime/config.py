@@ -1,0 +1,117 @@
+"""Runtime configuration: tool geometry, thresholds, drilling plan (units in the names).
+
+Defaults are the thesis's numbers where it gives them, else marked assumptions. The protocol
+files (YAML) fill these; every value is range-checked here so that a bad value is refused with
+its field, value and limit before anything moves.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
+from dentibot.errors import ConfigError
+from dentibot.runtime.strategies import StrategyParams
+
+
+def _check(name: str, value: float, lo: float, hi: float, unit: str = "") -> None:
+    if not (isinstance(value, int | float) and math.isfinite(value) and lo <= value <= hi):
+        raise ConfigError(name, value, f"{lo}..{hi} {unit}".strip())
+
+
+@dataclass(frozen=True)
+class ToolGeometry:
+    """Where the file tip, the sensor and the grip are (section 3.4, fig 4.7).
+
+    - ``tip_6_mm``: 6p_H, the file tip in the flange frame (TCP calibration).
+    - ``R_6_H``: 6R_H as 9 numbers row-major (tool-axis calibration); identity by default.
+    - ``sensor_origin_6_mm``: the F/T sensor's origin in the flange frame (mechanical design).
+    - ``grip_h_mm``: reference point A (where the operator holds the handpiece) in {H}.
+    """
+
+    tip_6_mm: tuple[float, float, float] = (0.0, 0.0, 90.0)
+    R_6_H: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    sensor_origin_6_mm: tuple[float, float, float] = (0.0, 0.0, 10.0)
+    # assumption: the grip is 50 mm behind the file tip along the file axis.
+    grip_h_mm: tuple[float, float, float] = (0.0, 0.0, -50.0)
+
+
+@dataclass(frozen=True)
+class HandpieceConfig:
+    """Current -> file torque (eq 5.4-5.5 with efficiency and no-load current)."""
+
+    efficiency: float = 0.7            # assumption, matches the simulator's gearhead
+    friction_current_a: float = 0.005  # assumption, matches the simulator's no-load current
+    drilling_rpm: float = 60.0         # thesis 5.3: spindle speed constant 60 rpm
+    reversal_deg: float = 90.0         # thesis 5.2: turn back 90 deg
+    reversal_timeout_s: float = 2.0    # assumption: a reversal that takes longer is a fault
+
+    def __post_init__(self) -> None:
+        _check("handpiece.efficiency", self.efficiency, 0.3, 1.0)
+        _check("handpiece.friction_current_a", self.friction_current_a, 0.0, 0.2, "A")
+        _check("handpiece.drilling_rpm", self.drilling_rpm, 1.0, 200.0, "rpm")
+        _check("handpiece.reversal_deg", self.reversal_deg, 10.0, 360.0, "deg")
+        _check("handpiece.reversal_timeout_s", self.reversal_timeout_s, 0.1, 10.0, "s")
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """Event thresholds and safety limits."""
+
+    patient_moved_n: float = 1.5        # thesis fig 5.6: ||{H}f|| > 1.5 N
+    # assumption: released below 1.0 N held for 0.1 s (hysteresis against chattering).
+    patient_release_n: float = 1.0
+    patient_release_s: float = 0.1
+    # assumption: hard file-torque limit 90 % of the 62 mNm strength: stop and reverse.
+    torque_limit_mnm: float = 0.9 * FILE_TORQUE_LIMIT_MNM
+    # assumption: apical force cap 3 N along the file (retract above it).
+    axial_force_limit_n: float = 3.0
+    # Freshness bound per stream, in control periods (stale -> fault).
+    stale_periods: dict = field(default_factory=lambda: {
+        "arm": 10, "ft": 5, "motor": 10, "aux": 50})
+
+    def __post_init__(self) -> None:
+        _check("limits.patient_moved_n", self.patient_moved_n, 0.2, 10.0, "N")
+        _check("limits.patient_release_n", self.patient_release_n, 0.05, self.patient_moved_n,
+               "N")
+        _check("limits.torque_limit_mnm", self.torque_limit_mnm, 1.0, FILE_TORQUE_LIMIT_MNM,
+               "mNm")
+        _check("limits.axial_force_limit_n", self.axial_force_limit_n, 0.5, 20.0, "N")
+
+
+@dataclass(frozen=True)
+class TreatmentPlan:
+    """The drilling part of a procedure."""
+
+    working_length_mm: float = 16.0
+    strategy: StrategyParams = field(default_factory=StrategyParams)
+    passes: int = 1                    # drill to working length and retract this many times
+    align_fz_n: float = 1.0            # Table 6.4: fz = 1 N during alignment
+    align_rpm: float = 0.0             # file turning during alignment (Table 6.4 B, C: yes)
+    retract_fz_n: float = 0.5          # assumption: withdraw with -0.5 N (about 3 mm/s)
+    retract_to_mm: float = -0.5        # assumption: retracted when the tip is 0.5 mm out
+    # Distance (mm) from the file tip to the canal orifice along the file when alignment or
+    # drilling starts (the operator dragged the tip there): depth = -gap at that moment.
+    orifice_gap_mm: float = 0.0
+
+    def __post_init__(self) -> None:
+        _check("treatment.working_length_mm", self.working_length_mm, 1.0, 30.0, "mm")
+        _check("treatment.passes", self.passes, 1, 1000)
+        _check("treatment.align_fz_n", self.align_fz_n, -2.0, 2.0, "N")
+        _check("treatment.align_rpm", self.align_rpm, 0.0, 200.0, "rpm")
+        _check("treatment.retract_fz_n", self.retract_fz_n, 0.05, 2.0, "N")
+        _check("treatment.retract_to_mm", self.retract_to_mm, -10.0, 0.0, "mm")
+        _check("treatment.orifice_gap_mm", self.orifice_gap_mm, 0.0, 20.0, "mm")
+
+
+@dataclass(frozen=True)
+class RuntimeConfig:
+    period_s: float = 0.002            # thesis: ts = 2 ms (500 Hz)
+    tool: ToolGeometry = field(default_factory=ToolGeometry)
+    handpiece: HandpieceConfig = field(default_factory=HandpieceConfig)
+    thresholds: Thresholds = field(default_factory=Thresholds)
+    plan: TreatmentPlan = field(default_factory=TreatmentPlan)
+
+    def __post_init__(self) -> None:
+        _check("control.period_s", self.period_s, 0.0002, 0.1, "s")

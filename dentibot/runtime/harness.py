@@ -1,0 +1,74 @@
+"""The runtime on the built-in simulator in lock-step time (tests, experiments, protocol runs).
+
+:class:`SimHarness` builds a :class:`~dentibot.sim.world.World`, its in-process devices, a
+:class:`~dentibot.runtime.clock.LockStepClock` that steps the world once per tick, and a
+:class:`~dentibot.runtime.control_task.Runtime` whose tool geometry matches the simulated
+tool. ``truth()`` adds what only a simulation knows to each telemetry row (phantom pose, true
+depth, completeness, fracture); the control never reads it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from dentibot.control.kinematics import euler_xyz_deg
+from dentibot.control.wrench import GravityModel
+from dentibot.runtime.clock import LockStepClock
+from dentibot.runtime.config import RuntimeConfig, ToolGeometry
+from dentibot.runtime.control_task import Devices, Runtime
+from dentibot.sim.devices import make_devices
+from dentibot.sim.world import World, WorldConfig
+
+
+def tool_geometry_of(world: World) -> ToolGeometry:
+    """The tool geometry a perfect TCP calibration would find for this world."""
+    tool = world.config.tool
+    return ToolGeometry(tip_6_mm=tuple(float(x) for x in tool[:3, 3]),
+                        R_6_H=tuple(float(x) for x in tool[:3, :3].ravel()),
+                        sensor_origin_6_mm=(0.0, 0.0, world.sensor.p.offset_mm))
+
+
+def true_gravity_model(world: World) -> GravityModel:
+    """The simulated sensor's true offsets and load (what an ideal load calibration finds)."""
+    s = world.sensor
+    tare = np.asarray(s.tare)
+    return GravityModel(
+        f0_n=np.asarray(s.f0) - tare[:3], tau0_nm=np.asarray(s.tau0) - tare[3:],
+        weight_n=s.p.mass_kg * 9.80665, centroid_mm=s.p.centroid_mm,
+        mount_angle_deg=s.p.mount_angle_deg)
+
+
+class SimHarness:
+    """World + devices + lock-step clock + runtime, ready to run."""
+
+    def __init__(self, world: World | WorldConfig | None = None,
+                 config: RuntimeConfig | None = None, *, calibrated: bool = True,
+                 sink=None, step_name: str = "") -> None:
+        if not isinstance(world, World):
+            world = World(world)
+        self.world = w = world
+        cfg = config or RuntimeConfig()
+        if cfg.tool == ToolGeometry():
+            cfg = dataclasses.replace(cfg, tool=tool_geometry_of(w))
+        self.config = cfg
+        arm, ft, motor, aux = make_devices(w)
+        self.devices = Devices(arm, ft, motor, aux)
+        self.clock = LockStepClock(w.step, cfg.period_s)
+        self.runtime = Runtime(self.devices, cfg, self.clock,
+                               gravity=true_gravity_model(w) if calibrated else None,
+                               sink=sink, truth=self.truth, step_name=step_name)
+        self._phantom_euler = euler_xyz_deg(w.phantom_pose[:3, :3].tolist())
+
+    def truth(self) -> dict:
+        w = self.world
+        o, t0 = w.canal_axis_0()
+        tip = w.tip_0
+        depth = sum((tip[i] - o[i]) * t0[i] for i in range(3))
+        return {
+            "phantom_pose": [*o, *self._phantom_euler],
+            "true_depth_mm": depth,
+            "completeness": w.completeness(),
+            "fractured": w.fractured is not None,
+        }

@@ -1,0 +1,44 @@
+"""What each state asks of the arm and the file: data read by the control task every tick.
+
+- ``arm``: "hold" (zero joint velocity streamed, so the arm's dead-man stays fed),
+  "admittance" (the admittance law drives the arm), "script" (a routine of the control task
+  moves it, e.g. the load calibration poses), "stop" (stopped once on entry, then held).
+- ``admittance``: preset name ("dragging", "self_alignment") and ``ref``: the reference point
+  of fig 4.7 ("A" the grip for dragging, "B" the file tip for self-alignment).
+- ``feed``: the desired insertion force fz in f_d = (0, 0, fz, 0, 0, 0) (self-alignment, 4.4):
+  "zero", "align" (the configured alignment force), "strategy" (the drilling strategy: feedrate
+  PD, sections ...), "retract" (a negative force that withdraws the file).
+- ``file``: "stop", "forward" (drilling speed), "align" (turning during alignment if
+  configured), "reverse" (the 90 deg inverse rotation of 5.2, once on entry).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Mode:
+    arm: str
+    admittance: str | None = None
+    ref: str | None = None
+    feed: str = "zero"
+    file: str = "stop"
+
+
+_DRILL = {"arm": "admittance", "admittance": "self_alignment", "ref": "B"}
+
+MODES: dict[str, Mode] = {
+    "idle": Mode("hold"),
+    "calibrating.tcp": Mode("admittance", "dragging", "B"),
+    "calibrating.load": Mode("script"),
+    "dragging": Mode("admittance", "dragging", "A"),
+    "self_aligning": Mode(**_DRILL, feed="align", file="align"),
+    "treating.drilling.feeding": Mode(**_DRILL, feed="strategy", file="forward"),
+    "treating.drilling.reversing": Mode(**_DRILL, feed="zero", file="reverse"),
+    "treating.patient_moved": Mode(**_DRILL, feed="zero", file="stop"),
+    "treating.paused": Mode(**_DRILL, feed="zero", file="stop"),
+    "treating.retracting": Mode(**_DRILL, feed="retract", file="forward"),
+    "done": Mode("hold"),
+    "fault": Mode("stop"),
+}

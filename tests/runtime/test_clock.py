@@ -1,0 +1,57 @@
+"""Clocks and deadline accounting (functional checks; speed is measured in benchmarks/)."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from dentibot.errors import ConfigError
+from dentibot.runtime.clock import DeadlineStats, LockStepClock, RealTimeClock
+
+
+def test_deadline_stats_quantiles_and_overruns_from_known_lateness():
+    s = DeadlineStats(0.002)
+    # 98 ticks 3 us late, one 150 us, one 3 ms late (with 0.1 ms compute: an overrun)
+    for _ in range(98):
+        s.add(3e-6, 1e-4)
+    s.add(150e-6, 1e-4)
+    s.add(3e-3, 1e-4)
+    assert s.ticks == 100
+    assert s.lateness_quantile_us(0.5) == 5.0        # bin (0, 5] us
+    assert s.lateness_quantile_us(0.99) == 200.0     # the 99th tick is in (100, 200] us
+    assert s.max_lateness_us == pytest.approx(3000.0)
+    assert s.overruns == 1
+    d = s.as_dict()
+    assert d["histogram_us"]["5"] == 98 and d["compute_us_mean"] == pytest.approx(100.0)
+
+
+def test_compute_longer_than_the_period_is_an_overrun():
+    s = DeadlineStats(0.002)
+    assert s.add(0.0, 0.0021) and not s.add(0.0, 0.0019)
+
+
+async def test_lockstep_clock_steps_the_world_once_per_tick():
+    steps = []
+    c = LockStepClock(lambda: steps.append(1), 0.002)
+    for _ in range(10):
+        assert await c.wait_next() == 0.0
+    assert len(steps) == 10 and c.now() == pytest.approx(0.02)
+
+
+async def test_realtime_clock_keeps_absolute_deadlines_and_skips_missed_ones():
+    c = RealTimeClock(0.002)
+    t0 = time.perf_counter()
+    lateness = [await c.wait_next() for _ in range(20)]
+    # never early, and the 20th deadline is 40 ms after start (absolute schedule: no drift)
+    assert min(lateness) >= 0.0
+    assert time.perf_counter() - t0 >= 0.040
+    time.sleep(0.011)  # noqa: ASYNC251 - a deliberate stall of 5.5 periods: at least 4 deadlines are skipped
+    await c.wait_next()
+    assert c.skipped >= 4
+
+
+def test_period_out_of_range_is_refused_with_field_and_limit():
+    with pytest.raises(ConfigError) as e:
+        RealTimeClock(0.5)
+    assert "control.period_s" in str(e.value) and "0.1" in str(e.value)
