@@ -1,0 +1,266 @@
+"""Figures of a recording, after the thesis's experiment figures (fig 6.7-6.16).
+
+:func:`plot_recording` writes one PNG per figure of :data:`FIGURES` into ``out_dir`` and skips
+the figures whose data the recording lacks (the phantom pose is known on the simulator only,
+for example); the returned list carries the reasons in ``.skipped``.
+
+Figures (file names ``<recording stem>-<name>.png``):
+
+- ``position_vs_root``: handpiece (file tip) and root (phantom) displacement per axis
+  x, y, z (mm, from their first sample), and the distance between them (mm).
+- ``force_vs_velocity``: measured force along the file axis (z of ``wrench_h``) against the
+  velocity along the file axis (mm/s; the tool position differentiated, projected on the
+  tool z axis).
+- ``force_vs_position``: the same force against the depth in the canal (mm), or against the
+  position along the initial file axis when the depth is unknown.
+- ``torque_feed``: file torque with the 62 mNm limit and the ``tau_d`` line (from the
+  metadata key ``tau_d_mnm``) over time; feed force ``fz_n`` and its set point ``fz_star_n``.
+- ``state_timeline``: coloured bands per protocol step and per state over time.
+
+Matplotlib is used through :class:`matplotlib.figure.Figure` with the Agg canvas only
+(no pyplot, no global backend, no display).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import structlog
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.patches import Patch
+
+from dentibot.telemetry.reader import Recording, read_recording
+
+__all__ = ["FIGURES", "FILE_TORQUE_LIMIT_MNM", "PlotSet", "plot_recording"]
+
+log = structlog.get_logger("dentibot.telemetry")
+
+# Torsional strength of the NiTi file (mNm): the same value as
+# dentibot.control.feedrate.FILE_TORQUE_LIMIT_MNM (telemetry does not import control);
+# the metadata key "file_torque_limit_mnm" overrides it.
+FILE_TORQUE_LIMIT_MNM = 62.0
+
+_DPI = 100
+_AXES = ("x", "y", "z")
+
+
+class PlotSet(list):
+    """The PNG paths written (a list of Path), with ``skipped``: figure name -> reason."""
+
+    def __init__(self, paths=(), skipped: dict[str, str] | None = None) -> None:
+        super().__init__(paths)
+        self.skipped: dict[str, str] = dict(skipped or {})
+
+
+def _t(rec: Recording) -> np.ndarray:
+    return rec.column("t")
+
+
+def _valid_rows(a: np.ndarray) -> np.ndarray:
+    """Rows of ``a`` (n,) or (n, k) without nan."""
+    return np.isfinite(a) if a.ndim == 1 else np.isfinite(a).all(axis=1)
+
+
+def _rot_mobile_xyz(pose_deg: np.ndarray) -> np.ndarray:
+    """Rotation matrices (n, 3, 3) from mobile XYZ Euler angles (deg): Rx(a) Ry(b) Rz(g)."""
+    a, b, g = np.radians(pose_deg[:, 3]), np.radians(pose_deg[:, 4]), np.radians(pose_deg[:, 5])
+    ca, sa, cb, sb, cg, sg = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(g), np.sin(g)
+    r = np.empty((len(a), 3, 3))
+    r[:, 0, 0] = cb * cg
+    r[:, 0, 1] = -cb * sg
+    r[:, 0, 2] = sb
+    r[:, 1, 0] = ca * sg + sa * sb * cg
+    r[:, 1, 1] = ca * cg - sa * sb * sg
+    r[:, 1, 2] = -sa * cb
+    r[:, 2, 0] = sa * sg - ca * sb * cg
+    r[:, 2, 1] = sa * cg + ca * sb * sg
+    r[:, 2, 2] = ca * cb
+    return r
+
+
+_FORCE_LABEL = "force along the file axis, wrench_h fz (N)"
+
+
+def _axial_force(rec: Recording) -> np.ndarray:
+    """Measured force along the file axis: z of the external wrench in {H} (N)."""
+    return rec.column("wrench_h")[:, 2]
+
+
+def _insertion(rec: Recording) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
+    """(t, position along the initial file axis mm, velocity along the file axis mm/s),
+    or the reason it cannot be computed."""
+    t, pose = _t(rec), rec.column("tool_pose")
+    ok = _valid_rows(pose) & np.isfinite(t)
+    t, pose = t[ok], pose[ok]
+    if len(t) < 3 or not np.all(np.diff(t) > 0):
+        return "fewer than 3 tool poses with increasing t"
+    z_axis = _rot_mobile_xyz(pose)[:, :, 2]
+    p = pose[:, :3]
+    v = np.gradient(p, t, axis=0)
+    return t, (p - p[0]) @ z_axis[0], np.einsum("ij,ij->i", v, z_axis)
+
+
+def _fig_position_vs_root(rec: Recording, fig: Figure) -> str | None:
+    t, tool, root = _t(rec), rec.column("tool_pose"), rec.column("phantom_pose")
+    ok = _valid_rows(tool) & _valid_rows(root) & np.isfinite(t)
+    if ok.sum() < 2:
+        return "no phantom pose in the recording (known on the simulator only)"
+    t, tool, root = t[ok], tool[ok, :3], root[ok, :3]
+    axes = fig.subplots(4, 1, sharex=True)
+    for i, ax in enumerate(axes[:3]):
+        ax.plot(t, tool[:, i] - tool[0, i], label="handpiece (file tip)")
+        ax.plot(t, root[:, i] - root[0, i], "--", label="root (phantom)")
+        ax.set_ylabel(f"{_AXES[i]} displacement (mm)")
+    axes[0].legend(loc="best")
+    axes[3].plot(t, np.linalg.norm(tool - root, axis=1), color="k")
+    axes[3].set_ylabel("distance (mm)")
+    axes[3].set_xlabel("t (s)")
+    fig.suptitle("Handpiece vs root position")
+    return None
+
+
+def _fig_force_vs_velocity(rec: Recording, fig: Figure) -> str | None:
+    ins = _insertion(rec)
+    if isinstance(ins, str):
+        return ins
+    _t_ins, _pos, vel = ins
+    fz = _axial_force(rec)[np.isfinite(_t(rec)) & _valid_rows(rec.column("tool_pose"))]
+    ok = np.isfinite(fz)
+    if ok.sum() < 2:
+        return "no measured wrench (wrench_h) in the recording"
+    ax = fig.subplots()
+    ax.plot(vel[ok], fz[ok], ".", markersize=2)
+    ax.set_xlabel("velocity along the file axis (mm/s)")
+    ax.set_ylabel(_FORCE_LABEL)
+    ax.grid(True)
+    fig.suptitle("Force vs velocity (insertion axis)")
+    return None
+
+
+def _fig_force_vs_position(rec: Recording, fig: Figure) -> str | None:
+    fz, depth = _axial_force(rec), rec.column("depth_mm")
+    ok = np.isfinite(fz) & np.isfinite(depth)
+    if ok.sum() >= 2:
+        x, fz, label = depth[ok], fz[ok], "depth in the canal (mm)"
+    else:
+        ins = _insertion(rec)
+        if isinstance(ins, str):
+            return f"no depth and {ins}"
+        fz = fz[np.isfinite(_t(rec)) & _valid_rows(rec.column("tool_pose"))]
+        ok = np.isfinite(fz)
+        if ok.sum() < 2:
+            return "no measured wrench (wrench_h) in the recording"
+        x, fz, label = ins[1][ok], fz[ok], "position along the initial file axis (mm)"
+    ax = fig.subplots()
+    ax.plot(x, fz, ".", markersize=2)
+    ax.set_xlabel(label)
+    ax.set_ylabel(_FORCE_LABEL)
+    ax.grid(True)
+    fig.suptitle("Force vs position")
+    return None
+
+
+def _fig_torque_feed(rec: Recording, fig: Figure) -> str | None:
+    t, tau = _t(rec), rec.column("file_torque_mnm")
+    ok = np.isfinite(t) & np.isfinite(tau)
+    if ok.sum() < 2:
+        return "no file torque in the recording"
+    limit = rec.metadata.get("file_torque_limit_mnm", FILE_TORQUE_LIMIT_MNM)
+    tau_d = rec.metadata.get("tau_d_mnm")
+    ax_tau, ax_f = fig.subplots(2, 1, sharex=True)
+    ax_tau.plot(t[ok], tau[ok], label="file torque")
+    ax_tau.axhline(limit, color="r", linestyle="--", label=f"limit {limit:g} mNm")
+    if isinstance(tau_d, (int, float)):
+        ax_tau.axhline(tau_d, color="g", linestyle=":", label=f"tau_d {tau_d:g} mNm")
+    ax_tau.set_ylabel("torque (mNm)")
+    ax_tau.legend(loc="best")
+    for name, style, label in (("fz_n", "-", "fz (measured)"), ("fz_star_n", "--", "fz* (set)")):
+        y = rec.column(name)
+        good = np.isfinite(t) & np.isfinite(y)
+        if good.any():
+            ax_f.plot(t[good], y[good], style, label=label)
+    ax_f.set_ylabel("feed force (N)")
+    ax_f.set_xlabel("t (s)")
+    ax_f.legend(loc="best")
+    fig.suptitle("File torque and feed")
+    return None
+
+
+def _segments(t: np.ndarray, labels: np.ndarray) -> list[tuple[str, float, float]]:
+    """(label, start, end) runs of equal consecutive labels."""
+    out: list[tuple[str, float, float]] = []
+    start = 0
+    for i in range(1, len(labels) + 1):
+        if i == len(labels) or labels[i] != labels[start]:
+            end = t[i] if i < len(labels) else t[-1] + (t[-1] - t[0]) / max(len(t) - 1, 1)
+            out.append((str(labels[start]), float(t[start]), float(end)))
+            start = i
+    return out
+
+
+def _fig_state_timeline(rec: Recording, fig: Figure) -> str | None:
+    t = _t(rec)
+    ok = np.isfinite(t)
+    if ok.sum() < 1:
+        return "no rows in the recording"
+    ax = fig.subplots()
+    t = t[ok]
+    span = float(t[-1] - t[0]) or 1.0
+    legend: dict[str, dict[str, str]] = {}
+    for y, name in ((1, "step"), (0, "state")):
+        colours = legend[name] = {}           # label -> colour, in order of first appearance
+        for label, start, end in _segments(t, rec.column(name)[ok]):
+            colour = colours.setdefault(label, f"C{len(colours) % 10}")
+            ax.broken_barh([(start, end - start)], (y - 0.4, 0.8), facecolors=colour)
+            if end - start > 0.04 * span:
+                ax.text((start + end) / 2, y, label or "(none)", ha="center", va="center",
+                        fontsize=7, clip_on=True)
+    handles = [Patch(facecolor=c, label=f"{name}: {label or '(none)'}")
+               for name, colours in legend.items() for label, c in colours.items()]
+    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7,
+              frameon=False)
+    ax.set_yticks([0, 1], ["state", "step"])
+    ax.set_xlabel("t (s)")
+    fig.suptitle("Protocol steps and states")
+    return None
+
+
+# name -> (figure size in inches, drawing function returning None or the reason to skip)
+FIGURES: dict[str, tuple[tuple[float, float], Callable[[Recording, Figure], str | None]]] = {
+    "position_vs_root": ((8, 9), _fig_position_vs_root),
+    "force_vs_velocity": ((7, 5), _fig_force_vs_velocity),
+    "force_vs_position": ((7, 5), _fig_force_vs_position),
+    "torque_feed": ((9, 6), _fig_torque_feed),
+    "state_timeline": ((12, 3.5), _fig_state_timeline),
+}
+
+
+def plot_recording(path: str | os.PathLike[str] | Recording,
+                   out_dir: str | os.PathLike[str]) -> PlotSet:
+    """Write the figures of a recording (path or :class:`Recording`) as PNGs in ``out_dir``
+    (created if needed). Returns the paths written; ``.skipped`` names the figures not drawn
+    and why. Raises TelemetryError if the recording cannot be read."""
+    rec = path if isinstance(path, Recording) else read_recording(path)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    result = PlotSet()
+    if not rec.rows:
+        result.skipped = {name: "no /tick rows in the recording" for name in FIGURES}
+        return result
+    for name, (size, draw) in FIGURES.items():
+        fig = Figure(figsize=size)
+        FigureCanvasAgg(fig)
+        reason = draw(rec, fig)
+        if reason is not None:
+            result.skipped[name] = reason
+            log.info("telemetry.plot_skipped", figure=name, reason=reason)
+            continue
+        fig.tight_layout()
+        target = out / f"{rec.path.stem}-{name}.png"
+        fig.savefig(target, dpi=_DPI)
+        result.append(target)
+    return result

@@ -1,0 +1,187 @@
+"""Read a DentiBot MCAP recording back, including one cut short by a crash.
+
+:func:`read_recording` walks the file front to back with the mcap library's
+:class:`~mcap.stream_reader.StreamReader` (it never needs the summary section at the end, which
+a crashed run does not have). Chunk CRCs are checked, so a chunk cut in the middle is refused
+whole: what comes back is every message of every complete chunk, in file order, and
+``complete`` says whether the file was finished (footer read, nothing cut off).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import structlog
+from mcap.records import Channel, Footer, Message
+from mcap.stream_reader import StreamReader
+from mcap.writer import MCAP0_MAGIC
+
+from dentibot.errors import ConfigError
+from dentibot.telemetry.schema import TICK_FIELDS, TOPICS, TelemetryError
+
+__all__ = ["MessageStream", "Recording", "read_recording"]
+
+TOPIC_NAMES = frozenset(TOPICS)
+
+log = structlog.get_logger("dentibot.telemetry")
+
+_FIELDS = {f.name: f for f in TICK_FIELDS}
+
+
+@dataclass
+class Recording:
+    """What a recording holds.
+
+    ``metadata``: the ``/run`` message ({} if cut before it); ``rows``: the ``/tick`` rows in
+    order; ``events``: the ``/events`` messages; ``end``: the ``/run/end`` message or None;
+    ``complete``: the file was finished and read to its end; ``problems``: what could not be
+    read (truncation, undecodable messages), as text.
+    """
+
+    path: Path
+    metadata: dict[str, Any] = field(default_factory=dict)
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    events: list[dict[str, Any]] = field(default_factory=list)
+    end: dict[str, Any] | None = None
+    complete: bool = False
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def status(self) -> str | None:
+        """``/run/end`` status, or None when the run has no end record (crash, still running)."""
+        return None if self.end is None else self.end.get("status")
+
+    @property
+    def rate_hz(self) -> float | None:
+        rate = self.metadata.get("rate_hz")
+        return float(rate) if isinstance(rate, (int, float)) and rate > 0 else None
+
+    def column(self, name: str) -> np.ndarray:
+        """One tick field over all rows as numpy.
+
+        Numbers and booleans: float array (n,), null -> nan. Fixed-size arrays (q_deg,
+        wrench_h, ...): float array (n, size), a null row -> a row of nan. Strings and lists of
+        strings: object array (n,).
+        """
+        if name not in _FIELDS:
+            raise ConfigError("telemetry.column", name, f"a tick field: {list(_FIELDS)}")
+        f = _FIELDS[name]
+        values = [r.get(name) for r in self.rows]
+        if f.json_type == "string":
+            out = np.empty(len(values), dtype=object)
+            out[:] = values
+            return out
+        if f.length:
+            arr = np.full((len(values), f.length), np.nan)
+            for i, v in enumerate(values):
+                if isinstance(v, list) and len(v) == f.length:
+                    arr[i] = [np.nan if x is None else x for x in v]
+            return arr
+        return np.array([np.nan if v is None else float(v) for v in values], dtype=float)
+
+
+class MessageStream:
+    """The messages of a recording, streamed: iterate for ``(topic, decoded JSON)`` pairs of
+    the DentiBot topics (``/run``, ``/tick``, ``/events``, ``/run/end``) in file order, without
+    holding the file in memory. After the iteration, ``complete`` and ``problems`` say how it
+    went (as in :class:`Recording`).
+
+    Raises TelemetryError at construction if the file is missing, unreadable or not MCAP.
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        try:
+            with open(self.path, "rb") as f:
+                magic = f.read(len(MCAP0_MAGIC))
+        except FileNotFoundError:
+            raise TelemetryError(self.path, "no such file") from None
+        except OSError as exc:
+            raise TelemetryError(self.path, f"cannot open: {exc}") from exc
+        if magic != MCAP0_MAGIC:
+            raise TelemetryError(self.path, f"not an MCAP file (starts with {magic[:8]!r}, "
+                                 f"expected {MCAP0_MAGIC!r})")
+        self.complete = False
+        self.problems: list[str] = []
+
+    def __iter__(self) -> Iterator[tuple[str, Any]]:
+        self.complete = False
+        self.problems = []
+        try:
+            f = open(self.path, "rb")  # noqa: SIM115 - closed below
+        except OSError as exc:
+            raise TelemetryError(self.path, f"cannot open: {exc}") from exc
+        with f:
+            size = os.fstat(f.fileno()).st_size
+            topics: dict[int, str] = {}
+            footer = False
+            try:
+                for record in StreamReader(f, validate_crcs=True,
+                                           record_size_limit=max(size, 1)).records:
+                    if isinstance(record, Message):
+                        topic = topics.get(record.channel_id, "")
+                        if topic in TOPIC_NAMES:
+                            obj = self._decode(topic, record)
+                            if obj is not _BAD:
+                                yield topic, obj
+                    elif isinstance(record, Channel):
+                        topics[record.id] = record.topic
+                    elif isinstance(record, Footer):
+                        footer = True
+            except Exception as exc:  # noqa: BLE001 - any damage ends the readable part
+                self.problems.append(f"stopped reading at byte {f.tell()} of {size}: "
+                                     f"{type(exc).__name__}: {exc}")
+            else:
+                self.complete = footer
+        if self.problems:
+            log.warning("telemetry.read_incomplete", path=str(self.path),
+                        problems=self.problems[:3])
+
+    def _decode(self, topic: str, msg: Message) -> Any:
+        try:
+            return json.loads(msg.data)
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            self.problems.append(f"{topic} message at log time {msg.log_time} ns: "
+                                 f"bad JSON ({exc})")
+            return _BAD
+
+
+_BAD = object()
+
+
+def read_recording(path: str | os.PathLike[str]) -> Recording:
+    """Read ``path`` whole; tolerant of a truncated or still-growing file (``complete=False``).
+
+    Raises TelemetryError if the file is missing, unreadable or not an MCAP file. (For long
+    runs, :class:`MessageStream` reads without holding every row.)
+    """
+    stream = MessageStream(path)
+    rec = Recording(path=stream.path)
+    for topic, obj in stream:
+        _TOPIC_HANDLERS[topic](rec, obj)
+    rec.complete = stream.complete
+    rec.problems = stream.problems
+    return rec
+
+
+def _set_metadata(rec: Recording, obj: Any) -> None:
+    rec.metadata = obj if isinstance(obj, dict) else {"value": obj}
+
+
+def _set_end(rec: Recording, obj: Any) -> None:
+    rec.end = obj if isinstance(obj, dict) else {"value": obj}
+
+
+# topic -> what to do with a decoded message
+_TOPIC_HANDLERS = {
+    "/run": _set_metadata,
+    "/tick": lambda rec, obj: rec.rows.append(obj),
+    "/events": lambda rec, obj: rec.events.append(obj),
+    "/run/end": _set_end,
+}

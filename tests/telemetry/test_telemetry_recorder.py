@@ -1,0 +1,238 @@
+"""McapRecorder: rows in = rows out, never blocks the caller, crash-safe, errors not lost."""
+
+from __future__ import annotations
+
+import errno
+import json
+import math
+import shutil
+import time
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from telemetry_helpers import GatedStream, ramp_row
+
+from dentibot.errors import ConfigError
+from dentibot.telemetry import McapRecorder, TelemetryError, json_schema, read_recording
+
+pytestmark = pytest.mark.timeout(30)
+
+RATE_HZ = 500
+META = {"protocol": "demo", "seed": 7, "rate_hz": RATE_HZ,
+        "devices": {"arm": "sim", "ft": "sim", "handpiece": "sim", "aux": "sim"}}
+
+
+def _wait_for(condition, timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        time.sleep(0.005)
+
+
+def test_5000_rows_read_back_identical(tmp_path):
+    path = tmp_path / "run.mcap"
+    duration_s = 10.0
+    n = round(duration_s * RATE_HZ)
+    rows = [ramp_row(i, RATE_HZ) for i in range(n)]
+    with McapRecorder(path, META) as rec:
+        for row in rows:
+            rec.record(row)
+        rec.event("transition", "approach -> drilling", t=0.2, tick=100)
+    assert rec.ticks_written == rec.rows_queued == n == 5000
+    assert rec.rows_invalid == rec.rows_rejected == rec.rows_dropped == 0
+    got = read_recording(path)
+    assert got.complete and got.problems == []
+    assert len(got.rows) == n
+    assert got.rows == rows                          # every value, exactly (JSON float repr)
+    assert got.events == [{"t": 0.2, "tick": 100, "kind": "transition",
+                           "detail": "approach -> drilling"}]
+    assert got.end == {"status": "ok", "reason": "", "duration_s": duration_s}
+    assert {k: got.metadata[k] for k in META} == META
+    assert got.metadata["dentibot_version"]
+    np.testing.assert_array_equal(got.column("tick"), np.arange(n))
+    assert got.column("q_deg").shape == (n, 6)
+
+
+def test_file_is_an_indexed_foxglove_ready_mcap(tmp_path):
+    """The mcap library's indexed reader (as Foxglove reads it): json messages, jsonschema
+    schemas identical to the derived ones, log_time = t in ns, message counts per channel."""
+    path = tmp_path / "run.mcap"
+    with McapRecorder(path, META) as rec:
+        for i in range(300):
+            rec.record(ramp_row(i, RATE_HZ))
+        rec.event("note", "hello")
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        topics = {c.topic: c for c in summary.channels.values()}
+        assert set(topics) == {"/run", "/tick", "/events", "/run/end"}
+        for topic, channel in topics.items():
+            assert channel.message_encoding == "json"
+            schema = summary.schemas[channel.schema_id]
+            assert schema.encoding == "jsonschema"
+            assert json.loads(schema.data) == json_schema(topic)
+        counts = summary.statistics.channel_message_counts
+        assert counts[topics["/tick"].id] == 300 and counts[topics["/events"].id] == 1
+        ticks = [(m.log_time, json.loads(m.data)) for _s, c, m in
+                 reader.iter_messages(topics=["/tick"])]
+    assert [lt for lt, _row in ticks] == [round(i / RATE_HZ * 1e9) for i in range(300)]
+    assert [row["tick"] for _lt, row in ticks] == list(range(300))
+
+
+def test_record_never_blocks_while_the_writer_is_stuck_in_io():
+    """The writer thread is held inside a write (disk stall); record() keeps returning and
+    the rows pile up in the queue, then all reach the file once the disk is back."""
+    stream = GatedStream()
+    rec = McapRecorder(stream, META, flush_interval_s=0.02)
+    stream.hold()
+    rec.record(ramp_row(0))
+    stream.entered.wait(5.0)
+    assert stream.entered.is_set()                 # the writer is now blocked in write()
+    written_before = rec.ticks_written
+    n = 3000
+    for i in range(1, n + 1):
+        rec.record(ramp_row(i))
+    assert rec.rows_queued == n + 1                # every call returned...
+    assert rec.ticks_written == written_before <= 1    # ...while nothing more was written
+    assert rec.queue_depth == n and rec.queue_depth_max >= n
+    stream.release()
+    rec.close("ok")
+    assert rec.ticks_written == n + 1
+    raw = stream.getvalue()
+    path_rows = _read_bytes(raw)
+    assert [r["tick"] for r in path_rows] == list(range(n + 1))
+
+
+def _read_bytes(raw: bytes) -> list[dict]:
+    import tempfile
+    from pathlib import Path
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "x.mcap"
+        p.write_bytes(raw)
+        return read_recording(p).rows
+
+
+def test_full_queue_drops_and_counts_instead_of_blocking():
+    stream = GatedStream()
+    rec = McapRecorder(stream, META, flush_interval_s=0.02, max_queue=10)
+    stream.hold()
+    rec.record(ramp_row(0))
+    stream.entered.wait(5.0)
+    assert stream.entered.is_set()
+    for i in range(1, 21):
+        rec.record(ramp_row(i))
+    assert rec.rows_dropped == 10 and rec.queue_depth == 10
+    stream.release()
+    rec.close("ok")
+    assert rec.ticks_written == 11
+
+
+def test_writer_death_is_reported_on_the_next_record():
+    stream = GatedStream()
+    rec = McapRecorder(stream, META, flush_interval_s=0.02)
+    stream.fail_with = OSError(errno.ENOSPC, "No space left on device")
+    rec.record(ramp_row(0))
+    _wait_for(lambda: rec.error is not None)
+    with pytest.raises(TelemetryError, match="writer thread died") as info:
+        rec.record(ramp_row(1))
+    assert isinstance(info.value.__cause__, OSError)
+    with pytest.raises(TelemetryError):
+        rec.event("note")
+    rec.close("fault", "disk full")                # already reported: close does not raise
+    rec.close("fault", "disk full")                # idempotent
+
+
+def test_close_reports_a_writer_death_not_seen_yet():
+    stream = GatedStream()
+    rec = McapRecorder(stream, META, flush_interval_s=0.02)
+    stream.fail_with = OSError(errno.EIO, "Input/output error")
+    rec.record(ramp_row(0))
+    _wait_for(lambda: rec.error is not None)
+    with pytest.raises(TelemetryError, match="Input/output error"):
+        rec.close("ok")
+    assert rec.close("ok") == {"status": "ok", "reason": "", "duration_s": 1 / RATE_HZ}
+
+
+def test_everything_up_to_the_last_flush_is_readable_from_an_open_recording(tmp_path):
+    """Copy the file of a recorder that is still running (as after a crash): every row
+    flushed so far reads back, the file is flagged incomplete, no end record."""
+    path = tmp_path / "run.mcap"
+    rec = McapRecorder(path, META, flush_interval_s=0.05)
+    try:
+        rows = [ramp_row(i) for i in range(1000)]
+        for row in rows:
+            rec.record(row)
+        _wait_for(lambda: rec.rows_flushed == 1000)
+        crash = tmp_path / "crash.mcap"
+        shutil.copyfile(path, crash)
+        got = read_recording(crash)
+        assert got.rows == rows
+        assert got.end is None and not got.complete
+        assert got.metadata["protocol"] == "demo"
+    finally:
+        rec.close("ok")
+    assert read_recording(path).complete
+
+
+def test_nan_becomes_null_numpy_is_accepted_bad_rows_are_counted(tmp_path):
+    path = tmp_path / "run.mcap"
+    with McapRecorder(path, META) as rec:
+        rec.record(ramp_row(0, fz_n=math.nan, q_deg=np.arange(6.0), tick=np.int64(0)))
+        rec.record({"t": 0.002, "tick": 1, "oops": object()})        # not serialisable
+        rec.record({"t": 0.004, "tick": 2})                          # serialisable, invalid
+        rec.record(ramp_row(3))
+    assert rec.nonfinite_rows == 1
+    assert rec.rows_rejected == 1
+    assert rec.rows_invalid == 3           # the NaN row, the object row, the sparse row
+    assert rec.ticks_written == 3
+    rows = read_recording(path).rows
+    assert rows[0]["fz_n"] is None and rows[0]["q_deg"] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
+    assert rows[1] == {"t": 0.004, "tick": 2}
+    assert rows[2] == ramp_row(3)
+
+
+def test_event_defaults_to_the_last_row_and_exit_on_exception_aborts(tmp_path):
+    path = tmp_path / "run.mcap"
+    with pytest.raises(RuntimeError), McapRecorder(path, META) as rec:
+        rec.record(ramp_row(41))
+        rec.event("fault", "ft: stale sample")
+        raise RuntimeError("operator pressed stop")
+    got = read_recording(path)
+    assert got.events == [{"t": ramp_row(41)["t"], "tick": 41, "kind": "fault",
+                           "detail": "ft: stale sample"}]
+    assert got.end["status"] == "aborted" and "operator pressed stop" in got.end["reason"]
+    with pytest.raises(TelemetryError, match="closed"):
+        rec.record(ramp_row(42))
+
+
+def test_configuration_errors(tmp_path):
+    path = tmp_path / "run.mcap"
+    path.write_bytes(b"")
+    with pytest.raises(TelemetryError, match="exists"):
+        McapRecorder(path, META)
+    with pytest.raises(TelemetryError, match="cannot create"):
+        McapRecorder(tmp_path / "no" / "dir.mcap", META)
+    with pytest.raises(ConfigError, match="rate_hz"):
+        McapRecorder(tmp_path / "r.mcap", {"rate_hz": 0})
+    with pytest.raises(ConfigError, match="compression"):
+        McapRecorder(tmp_path / "r.mcap", META, compression="gzip")
+    with McapRecorder(path, META, overwrite=True) as rec, \
+            pytest.raises(ConfigError, match="status"):
+        rec.close("great")
+    assert read_recording(path).end["status"] == "ok"
+
+
+def test_duration_without_rate_is_the_last_t(tmp_path):
+    path = tmp_path / "run.mcap"
+    with McapRecorder(path, {"protocol": "x"}, compression="none") as rec:
+        for i in range(10):
+            rec.record(ramp_row(i, rate_hz=100.0))
+    assert read_recording(path).end["duration_s"] == 0.09
+
+
+def test_bad_metadata_is_refused_before_a_file_is_created(tmp_path):
+    path = tmp_path / "run.mcap"
+    with pytest.raises(ConfigError, match="metadata"):
+        McapRecorder(path, {"rate_hz": 500, "operator": object()})
+    assert not path.exists()
