@@ -1,16 +1,46 @@
-"""The README's test command is the one CI runs."""
+"""The README's two set-up commands: the main job (a protocol on the built-in simulator) and
+the test command that CI runs."""
 
 import re
+import subprocess
+import sys
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_ci_runs_the_readme_test_command():
+def _first_block() -> list[str]:
     readme = (ROOT / "README.md").read_text()
     blocks = re.findall(r"```sh\n(.*?)\n```", readme, flags=re.DOTALL)
     assert blocks, "README must open with its set-up commands in a sh block"
-    test_cmd = [line for line in blocks[0].splitlines() if "pytest" in line]
-    assert len(test_cmd) == 1
+    return blocks[0].splitlines()
+
+
+def test_readme_opens_with_exactly_the_two_setup_commands():
+    lines = _first_block()
+    assert len(lines) == 2
+    assert "dentibot run protocols/" in lines[0] and "pytest" in lines[1]
+
+
+def test_ci_runs_the_readme_test_command():
+    test_cmd = [line for line in _first_block() if "pytest" in line]
     ci = (ROOT / ".ci" / "run").read_text().splitlines()
     assert test_cmd[0] in ci
+
+
+@pytest.mark.timeout(300)
+def test_the_main_job_runs_to_completion():
+    """The README's first command, minus the install: the protocol runs and ends ok."""
+    cmd = _first_block()[0].split("&&")[-1].split()
+    protocol = cmd[cmd.index("run") + 1]
+    out = subprocess.run(
+        [sys.executable, "-m", "dentibot.cli", "run", protocol, "--no-record", "--json",
+         "--quiet"], cwd=ROOT, capture_output=True, text=True, timeout=280)
+    assert out.returncode == 0, out.stderr[-2000:]
+    import json
+
+    result = json.loads(out.stdout)
+    assert result["status"] == "ok" and result["fractures"] == 0
+    assert result["completeness"] > 0.8

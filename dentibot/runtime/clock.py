@@ -32,8 +32,9 @@ class DeadlineStats:
     > period), or a deadline skipped entirely.
     """
 
-    def __init__(self, period_s: float) -> None:
+    def __init__(self, period_s: float, deadlines: bool = True) -> None:
         self.period_s = period_s
+        self.deadlines = deadlines   # False in lock-step time: nothing can overrun
         self.reset()
 
     def reset(self) -> None:
@@ -54,7 +55,7 @@ class DeadlineStats:
         self.max_lateness_us = max(self.max_lateness_us, late_us)
         self.max_compute_us = max(self.max_compute_us, comp_us)
         self._compute_sum_us += comp_us
-        over = lateness_s + compute_s > self.period_s
+        over = self.deadlines and lateness_s + compute_s > self.period_s
         self.overruns += over
         return over
 
@@ -87,6 +88,8 @@ class Clock:
     """``now()`` (s since start) and ``wait_next()`` -> lateness of the new tick (s)."""
 
     period_s: float
+    #: True when ticks have deadlines in wall-clock time (lateness and overruns mean something).
+    realtime: bool = True
 
     def start(self) -> None:
         raise NotImplementedError
@@ -140,6 +143,8 @@ class RealTimeClock(Clock):
 
 class LockStepClock(Clock):
     """Simulated time: ``step()`` advances the world by one period per tick."""
+
+    realtime = False
 
     def __init__(self, step: Callable[[], None], period_s: float = 0.002,
                  yield_every: int = 1) -> None:

@@ -102,10 +102,12 @@ class Runtime:
         self.strategy = make_strategy(config.plan.strategy, config.plan.working_length_mm,
                                       self.ts)
         self.freshness = Freshness(config.thresholds.stale_periods)
-        self.stats = DeadlineStats(self.ts)
+        self.stats = DeadlineStats(self.ts, deadlines=clock.realtime)
         self.sink = sink
         self.truth = truth
         self.step_name = step_name
+        #: ``event_sink(tick, kind, detail)`` gets every event, command and fault as it happens.
+        self.event_sink: Callable[[int, str, str], None] | None = None
         self.ticks = 0
         self.events_log: list[tuple[int, str, str]] = []   # (tick, kind, detail)
         self.reversals = 0
@@ -423,6 +425,8 @@ class Runtime:
     # ------------------------------------------------------------------ step 6
     def _note(self, kind: str, detail: str) -> None:
         self.events_log.append((self.ticks, kind, detail))
+        if self.event_sink is not None:
+            self.event_sink(self.ticks, kind, detail)
         if kind == "fault":
             log.error("fault", tick=self.ticks, cause=detail)
         else:
@@ -445,12 +449,13 @@ class Runtime:
             "fz_n": fz,
             "file_torque_mnm": est.file_torque_mnm, "motor_current_a": est.motor_current_a,
             "motor_rpm": est.motor_rpm,
-            "depth_mm": est.depth_mm, "working_length_mm": self.cfg.plan.working_length_mm,
+            "depth_mm": est.depth_mm, "true_depth_mm": None, "working_length_mm": self.cfg.plan.working_length_mm,
             "completeness": None, "patient_moved": self.treatment.state ==
             "treating.patient_moved", "reversals": self.reversals, "fractured": False,
             "events": [e for e, _ in events],
             "lateness_us": max(lateness_s, 0.0) * 1e6, "compute_us": compute_s * 1e6,
-            "overrun": lateness_s + compute_s > self.ts,
+            # lock-step time has no deadlines: nothing can be late
+            "overrun": self.clock.realtime and lateness_s + compute_s > self.ts,
         }
         if self.truth is not None:
             row.update(self.truth())

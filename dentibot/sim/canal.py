@@ -73,6 +73,12 @@ class CanalParams:
     c_rev_per_rev: float = 4.0         # debris cleared: exp(-c_rev * reverse revolutions)
     c_fwd_per_rev: float = 0.02        # forward rotation augers a little debris out
     withdraw_mm: float = 0.5           # debris cleared: exp(-withdrawal / withdraw_mm)
+    # The feed-rate-dependent resistances act on the feed rate low-passed with this time
+    # constant (assumption: the file and the dentin chips are viscoelastic, not a pure
+    # dashpot). A pure dashpot closes an algebraic loop with the admittance law (velocity =
+    # k/b * force): with several mm^2 engaged its gain exceeds 1 per tick and the axial
+    # force rings between the sensor's +-60 N limits at the canal bottom.
+    feed_filter_s: float = 0.05
 
     def __post_init__(self) -> None:
         if not 0.0 < self.working_length_mm <= 30.0:
@@ -119,6 +125,7 @@ class Canal:
         self.red0 = float(self._red().sum())
         self.debris_mm3 = 0.0
         self._entered = False
+        self._feed = 0.0           # filtered feed rate (mm/s)
         ct, st = math.cos(math.radians(p.tilt_deg)), math.sin(math.radians(p.tilt_deg))
         self.t0 = (0.0, -st, ct)                                   # Rx(tilt) z
         self.u = (1.0, 0.0, 0.0)                                   # Rx(tilt) x
@@ -179,7 +186,9 @@ class Canal:
         s_tip = tip[0] * t0[0] + tip[1] * t0[1] + tip[2] * t0[2]
         out = Interaction(depth_mm=s_tip)
         self._win = (0, 0, None)
-        feed = (s_tip - self._last_depth) / dt if self._last_depth > -1.0 else 0.0
+        raw = (s_tip - self._last_depth) / dt if self._last_depth > -1.0 else 0.0
+        self._feed += (raw - self._feed) * (dt / (p.feed_filter_s + dt))
+        feed = self._feed
         ds_step = s_tip - self._last_depth
         self._last_depth = s_tip
         if s_tip <= 0.0:

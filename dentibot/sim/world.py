@@ -88,6 +88,10 @@ class World:
         self.pedal = False
         self.estop = False
         self.indicators: dict[str, bool] = {}
+        # The operator's hand on the handpiece (dragging, TCP calibration): a force (N, {0})
+        # at the grip, given in the flange frame (mm). Scripted by protocols and tests.
+        self.hand_force_0 = (0.0, 0.0, 0.0)
+        self.hand_point_6_mm = (0.0, 0.0, TOOL_LENGTH_MM - 50.0)
         self.fractured: FileFractured | None = None
         self.fatigue_damage = 0.0
         self.interaction = Interaction()
@@ -224,8 +228,24 @@ class World:
         else:
             f = tau = (0.0, 0.0, 0.0)
             self.contact_force_0 = f
+        if self.hand_force_0 != (0.0, 0.0, 0.0):
+            f, tau = self._add_hand(f, tau)
         self.external_tau_0 = tau
         self.sensor.sample(self._R06, f, tau)
+
+    def _add_hand(self, f, tau):
+        """Add the operator's hand: ``hand_force_0`` (N, {0}) applied at ``hand_point_6_mm``
+        (the grip, in the flange frame), with its moment about the sensor origin."""
+        R, p = self._R06, self._p06
+        g = self.hand_point_6_mm
+        pt = [p[i] + R[i][0] * g[0] + R[i][1] * g[1] + R[i][2] * g[2] for i in range(3)]
+        o = self.sensor.origin(R, p)
+        r = [(pt[i] - o[i]) * 1e-3 for i in range(3)]
+        h = self.hand_force_0
+        f = (f[0] + h[0], f[1] + h[1], f[2] + h[2])
+        tau = (tau[0] + r[1] * h[2] - r[2] * h[1], tau[1] + r[2] * h[0] - r[0] * h[2],
+               tau[2] + r[0] * h[1] - r[1] * h[0])
+        return f, tau
 
     def run(self, seconds: float) -> None:
         """Step ``round(seconds / ts)`` times."""

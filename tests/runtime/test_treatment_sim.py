@@ -172,3 +172,22 @@ async def test_sectioned_reversal_strategy_reaches_a_short_working_length():
     assert finished_sections == 1      # two sections of 3 mm: one hand-over, then WL
     assert max(r["true_depth_mm"] for r in rows) >= 5.9
     assert not any(r["fractured"] for r in rows)
+
+
+async def test_dragging_moves_the_grip_at_k_over_b_per_newton():
+    """Operator hand: 1 N along base x at the grip (reference point A). Table 4.3 dragging:
+    k/b = 1500/80 = 18.75 mm/s per N, no moment about A, so the grip translates."""
+    h, rows = harness(seed=9)
+    rt, w = h.runtime, h.world
+    assert await rt.command("drag") is None
+    await rt.run(max_ticks=10)
+    w.hand_force_0 = (1.0, 0.0, 0.0)
+    start = np.array(rows[-1]["tool_pose"][:3])
+    await rt.run(max_ticks=500)                       # 1 s
+    w.hand_force_0 = (0.0, 0.0, 0.0)
+    moved = np.array(rows[-1]["tool_pose"][:3]) - start
+    # the tip moves with the grip (pure translation): 18.75 mm minus the servo lag (8 ms)
+    assert moved[0] == pytest.approx(18.75 * (1.0 - 0.008 - 0.002), rel=0.03)
+    assert abs(moved[1]) < 0.3 and abs(moved[2]) < 0.3
+    rot = np.array(rows[-1]["tool_pose"][3:]) - np.array(rows[10]["tool_pose"][3:])
+    assert np.max(np.abs((rot + 180.0) % 360.0 - 180.0)) < 0.5   # angles wrap at 180 deg

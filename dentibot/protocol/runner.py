@@ -1,0 +1,271 @@
+"""Run a validated protocol end to end on the built-in simulator (lock-step time).
+
+Each step drives the runtime through operator commands only (no step bypasses the state
+machine, the limits or the supervisor). Every tick goes to the MCAP recorder and to the live
+summary; both see the same rows, so ``dentibot report`` on the file prints the same summary.
+Cancelling the run (Ctrl-C) stops it safely: file stopped, file withdrawn from the canal where
+possible, arm stopped; the recording and the summary are still written (status "aborted").
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dentibot.control.feedrate import FeedrateParams
+from dentibot.protocol.schema import Protocol
+from dentibot.runtime.config import RuntimeConfig, Thresholds, TreatmentPlan
+from dentibot.runtime.harness import SimHarness
+from dentibot.runtime.strategies import StrategyParams, make_strategy
+from dentibot.sim.canal import CanalParams
+from dentibot.sim.ftsensor import FTSensorParams
+from dentibot.sim.nitifile import NiTiFile
+from dentibot.sim.world import WorldConfig
+from dentibot.telemetry.recorder import McapRecorder
+from dentibot.telemetry.summary import RunSummary, SummaryAccumulator
+
+#: Longest time a single pass may take before the runner stops waiting (simulated s).
+PASS_TIMEOUT_S = 600.0
+#: Longest time the safe stop may spend withdrawing the file (simulated s).
+RETRACT_TIMEOUT_S = 20.0
+EXIT_CODES = {"ok": 0, "fault": 3, "fracture": 4, "aborted": 130}
+
+
+def world_config(p: Protocol) -> WorldConfig:
+    ph = p.phantom
+    curve = {}
+    if ph.curve is not None:
+        curve = {"curve_start_mm": ph.curve.start_mm, "curve_radius_mm": ph.curve.radius_mm,
+                 "curve_angle_deg": ph.curve.angle_deg}
+    tool = np.eye(4)
+    tool[:3, 3] = p.tool.tip_mm
+    return WorldConfig(
+        seed=p.seed, ts=1.0 / p.control.rate_hz, tool=tool,
+        sensor=FTSensorParams(offset_mm=p.tool.sensor_offset_mm),
+        file=NiTiFile(size=p.file.size, taper=p.file.taper, length_mm=float(p.file.length_mm),
+                      torsional_strength_mnm=p.file.torsional_strength_mnm),
+        canal=CanalParams(working_length_mm=ph.working_length_mm, tilt_deg=ph.tilt_deg, **curve),
+        orifice_gap_mm=ph.orifice_gap_mm, motion=p.patient.motion)
+
+
+def runtime_config(p: Protocol) -> RuntimeConfig:
+    lim = p.limits
+    return RuntimeConfig(
+        period_s=1.0 / p.control.rate_hz,
+        thresholds=Thresholds(patient_moved_n=lim.patient_moved_n,
+                              patient_release_n=min(1.0, 0.66 * lim.patient_moved_n),
+                              torque_limit_mnm=lim.torque_limit_mnm,
+                              axial_force_limit_n=lim.axial_force_limit_n),
+        plan=TreatmentPlan(working_length_mm=p.phantom.working_length_mm,
+                           orifice_gap_mm=p.phantom.orifice_gap_mm))
+
+
+def recording_path(p: Protocol, override: str | Path | None = None) -> Path | None:
+    if override is not None:
+        return Path(override)
+    if not p.recording.enabled:
+        return None
+    return Path(p.recording.path or f"runs/{p.name}-{p.seed}.mcap")
+
+
+def step_duration_s(p: Protocol, step_name: str) -> float | None:
+    """Planned (simulated) length of step ``"<n>:<kind>"``, None when open-ended."""
+    try:
+        step = p.steps[int(step_name.split(":", 1)[0]) - 1]
+    except (ValueError, IndexError):
+        return None
+    spec = step.spec
+    if step.kind in ("drag", "align"):
+        return spec.duration_s
+    if step.kind == "drill" and spec.rounds:
+        return sum(r.duration_s for r in spec.rounds)
+    return None
+
+
+@dataclass
+class RunResult:
+    summary: RunSummary
+    recording: Path | None
+
+    @property
+    def exit_code(self) -> int:
+        return EXIT_CODES.get(self.summary.status, 1)
+
+
+class ProtocolRunner:
+    """Build the simulated procedure of ``protocol`` and run its steps.
+
+    ``progress(figures)`` is called every ``progress_every`` ticks with the live key figures
+    (step, state, t, depth, working length, file torque and its limit, force).
+    """
+
+    def __init__(self, protocol: Protocol, *, recording: str | Path | None = None,
+                 progress: Callable[[dict], None] | None = None,
+                 progress_every: int = 250, overwrite: bool = True,
+                 no_record: bool = False) -> None:
+        self.p = protocol
+        self.progress = progress
+        self.progress_every = progress_every
+        self.path = None if no_record else recording_path(protocol, recording)
+        self.summary: RunSummary | None = None
+        self.acc = SummaryAccumulator(rate_hz=protocol.control.rate_hz)
+        calibrate = any(s.kind == "calibrate_load" for s in protocol.steps)
+        self.h = SimHarness(world_config(protocol), runtime_config(protocol),
+                            calibrated=not calibrate, sink=self._row)
+        self.rt = self.h.runtime
+        self.rt.event_sink = self._event
+        self.recorder = None
+        self._overwrite = overwrite
+        self._abort_reason = ""
+
+    # ---------------------------------------------------------------- sinks
+    def _row(self, row: dict) -> None:
+        self.acc.add(row)
+        if self.recorder is not None:
+            self.recorder.record(row)
+        if self.progress is not None and row["tick"] % self.progress_every == 0:
+            self.progress({
+                "step": row["step"], "state": row["state"], "t": row["t"],
+                "depth_mm": row["depth_mm"], "working_length_mm": row["working_length_mm"],
+                "file_torque_mnm": row["file_torque_mnm"],
+                "torque_limit_mnm": self.rt.cfg.thresholds.torque_limit_mnm,
+                "force_n": float(np.linalg.norm(row["wrench_h"][:3])),
+                "completeness": row.get("completeness"),
+            })
+
+    def _event(self, tick: int, kind: str, detail: str) -> None:
+        t = tick * self.rt.ts
+        self.acc.add_event(kind, detail, t=t, tick=tick)
+        if self.recorder is not None:
+            self.recorder.event(kind, detail, t=t, tick=tick)
+
+    # ---------------------------------------------------------------- run
+    async def run(self) -> RunResult:
+        p = self.p
+        drills = [s.spec for s in p.steps if s.kind == "drill"]
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.recorder = McapRecorder(self.path, {
+                "protocol": p.name, "seed": p.seed, "rate_hz": p.control.rate_hz,
+                "devices": {"arm": "sim", "ft": "sim", "handpiece": "sim", "aux": "sim"},
+                "file_torque_limit_mnm": p.file.torsional_strength_mnm,
+                **({"tau_d_mnm": drills[0].tau_d_mnm} if drills else {})},
+                overwrite=self._overwrite, validate=False)   # rows are checked in tests
+        status, reason = "ok", ""
+        try:
+            for i, step in enumerate(p.steps):
+                self.rt.step_name = f"{i + 1}:{step.kind}"
+                await getattr(self, f"_step_{step.kind}")(step.spec)
+                if self.rt.state == "fault":
+                    break
+            status, reason = self._status()
+        except asyncio.CancelledError:
+            await self._safe_stop()
+            status, reason = "aborted", self._abort_reason or "cancelled by the operator"
+            self._close(status, reason)
+            raise
+        except BaseException as exc:
+            await self._safe_stop()
+            status, reason = "fault", f"{type(exc).__name__}: {exc}"
+            self._close(status, reason)
+            raise
+        summary = self._close(status, reason)
+        return RunResult(summary, self.path)
+
+    def _status(self) -> tuple[str, str]:
+        w = self.h.world
+        if w.fractured is not None:
+            f = w.fractured
+            return "fracture", (f"file fractured by {f.cause} at {f.t:.2f} s, "
+                                f"{f.torque_mnm:.1f} mNm, depth {f.depth_mm:.2f} mm")
+        if self.rt.state == "fault":
+            return "fault", "; ".join(self.rt.treatment.fault_causes)
+        return "ok", ""
+
+    def _close(self, status: str, reason: str) -> RunSummary:
+        if self.recorder is not None:
+            self.recorder.close(status, reason)
+        self.summary = self.acc.finish(status, reason)
+        return self.summary
+
+    async def _safe_stop(self) -> None:
+        """File stopped, withdrawn where possible, arm stopped; never raises."""
+        rt = self.rt
+        try:
+            if rt.treatment.in_state("treating") and rt.state != "treating.retracting":
+                await rt.command("retract")
+            if rt.state == "treating.retracting":
+                await rt.run(until=lambda r: r.state != "treating.retracting",
+                             max_ticks=round(RETRACT_TIMEOUT_S / rt.ts))
+            if rt.state != "fault":
+                await rt.command("stop")
+                await rt.run(max_ticks=1)
+        finally:
+            await self.h.devices.motor.stop()
+            await self.h.devices.arm.stop()
+
+    async def _run_for(self, seconds: float, until=None) -> None:
+        await self.rt.run(until=lambda r: r.state == "fault" or (until is not None and until(r)),
+                          max_ticks=max(1, round(seconds / self.rt.ts)))
+
+    # ---------------------------------------------------------------- steps
+    async def _command(self, trigger: str, already: str | None = None) -> None:
+        """Send ``trigger`` unless the runtime is already in state ``already``."""
+        if already is not None and self.rt.state == already:
+            return
+        refusal = await self.rt.command(trigger)
+        if refusal is not None:
+            await self.rt.command("fault")
+            self.rt.treatment.fault_causes[-1] = f"protocol step: {refusal}"
+
+    async def _step_calibrate_load(self, spec) -> None:
+        await self._command("calibrate_load")
+        await self._run_for(60.0, until=lambda r: not r.treatment.in_state("calibrating"))
+
+    async def _step_drag(self, spec) -> None:
+        await self._command("drag", already="dragging")
+        self.h.world.hand_force_0 = tuple(spec.hand_force_n)
+        try:
+            await self._run_for(spec.duration_s)
+        finally:
+            self.h.world.hand_force_0 = (0.0, 0.0, 0.0)
+
+    async def _step_align(self, spec) -> None:
+        rt = self.rt
+        rt.cfg = dataclasses.replace(rt.cfg, plan=dataclasses.replace(
+            rt.cfg.plan, align_fz_n=spec.fz_n, align_rpm=spec.rpm))
+        await self._command("align", already="self_aligning")
+        await self._run_for(spec.duration_s)
+
+    async def _step_drill(self, spec) -> None:
+        rt = self.rt
+        strategy = StrategyParams(
+            name=spec.strategy, section_mm=spec.section_mm, min_rounds=spec.min_rounds,
+            feedrate=FeedrateParams(tau_d_mnm=spec.tau_d_mnm, fz_min_n=spec.fz_min_n,
+                                    fz_max_n=spec.fz_max_n))
+        rt.cfg = dataclasses.replace(
+            rt.cfg, plan=dataclasses.replace(rt.cfg.plan, strategy=strategy),
+            handpiece=dataclasses.replace(rt.cfg.handpiece, drilling_rpm=spec.rpm))
+        rt.strategy = make_strategy(strategy, rt.cfg.plan.working_length_mm, rt.ts)
+        finished = ("done", "fault")
+        if not spec.rounds:
+            rt.treatment.passes_left = 0
+            await self._command("drill")
+            await self._run_for(PASS_TIMEOUT_S, until=lambda r: r.state in finished)
+            return
+        for rnd in spec.rounds:
+            rt.treatment.passes_left = 10**6     # keep cleaning until the round's time is up
+            await self._command("drill")
+            await self._run_for(rnd.duration_s, until=lambda r: r.state in finished)
+            if rt.state == "fault":
+                return
+            rt.treatment.passes_left = 0
+            if rt.state != "treating.retracting":
+                await self._command("retract")
+            await self._run_for(RETRACT_TIMEOUT_S, until=lambda r: r.state in finished)
+

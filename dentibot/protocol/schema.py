@@ -1,0 +1,180 @@
+"""The treatment protocol file (YAML), validated with pydantic.
+
+Every section is optional; thesis defaults apply where the file is silent. Unknown keys are
+errors (a typo must not pass silently). Units are in the field names and descriptions:
+lengths mm, angles deg, forces N, file torque mNm, speeds rpm (file) or mm/s, time s.
+
+A protocol::
+
+    name: root-canal
+    seed: 1
+    file: {size: 25, taper: 0.06, length_mm: 25}
+    phantom: {working_length_mm: 16, tilt_deg: 0}
+    patient: {motion: static}
+    steps:
+      - calibrate_load: {}
+      - drag: {duration_s: 2, hand_force_n: [0, 0, -1.0]}
+      - align: {duration_s: 1, fz_n: 1.0}
+      - drill: {strategy: automated, tau_d_mnm: 40, rounds: [{duration_s: 300}, {duration_s: 200}]}
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
+
+Vec3 = tuple[float, float, float]
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ControlSpec(Strict):
+    rate_hz: float = Field(500.0, ge=10.0, le=5000.0,
+                           description="control rate (Hz); thesis 500 Hz (ts = 2 ms)")
+
+
+class ToolSpec(Strict):
+    tip_mm: Vec3 = Field((0.0, 0.0, 90.0),
+                         description="file tip in the flange frame, 6p_H (mm), from TCP calibration")
+    sensor_offset_mm: float = Field(10.0, ge=0.0, le=100.0,
+                                    description="F/T sensor origin along the flange z (mm)")
+    grip_mm: Vec3 = Field((0.0, 0.0, -50.0),
+                          description="reference point A (the grip) in {H} (mm)")
+
+
+class FileSpec(Strict):
+    size: int = Field(25, ge=6, le=140, description="ISO size: tip diameter in 1/100 mm")
+    taper: float = Field(0.06, gt=0.0, le=0.12, description="taper (mm per mm)")
+    length_mm: Literal[21, 25, 28, 31] = Field(25, description="total length (mm)")
+    torsional_strength_mnm: float = Field(
+        FILE_TORQUE_LIMIT_MNM, gt=0.0, le=200.0,
+        description="torque at which the file fractures (mNm); thesis 62 mNm")
+
+
+class CurveSpec(Strict):
+    start_mm: float = Field(ge=0.0, le=30.0, description="depth where the curve starts (mm)")
+    radius_mm: float = Field(8.0, gt=1.0, le=100.0, description="curve radius (mm)")
+    angle_deg: float = Field(25.0, ge=0.0, le=60.0, description="curve angle (deg)")
+
+
+class PhantomSpec(Strict):
+    """The tooth phantom and its canal (simulator only)."""
+
+    working_length_mm: float = Field(16.0, gt=1.0, le=30.0, description="working length (mm)")
+    tilt_deg: float = Field(0.0, ge=-30.0, le=30.0,
+                            description="canal tilt from the insertion direction (deg)")
+    curve: CurveSpec | None = None
+    orifice_gap_mm: float = Field(2.0, ge=0.0, le=20.0,
+                                  description="file tip to orifice at the start (mm)")
+
+    @model_validator(mode="after")
+    def _curve_inside(self):
+        if self.curve is not None and self.curve.start_mm >= self.working_length_mm:
+            raise ValueError(f"curve.start_mm = {self.curve.start_mm} must be below "
+                             f"working_length_mm = {self.working_length_mm}")
+        return self
+
+
+class PatientSpec(Strict):
+    motion: Literal["static", "square", "head"] = Field(
+        "static", description="phantom motion: none, thesis experiment 1 square, head sway")
+
+
+class LimitsSpec(Strict):
+    torque_limit_mnm: float = Field(0.9 * FILE_TORQUE_LIMIT_MNM, gt=0.0,
+                                    le=FILE_TORQUE_LIMIT_MNM,
+                                    description="hard file-torque limit (mNm)")
+    patient_moved_n: float = Field(1.5, ge=0.2, le=10.0,
+                                   description="||f_H|| above which the patient moved (N)")
+    axial_force_limit_n: float = Field(3.0, ge=0.5, le=20.0,
+                                       description="apical force cap (N)")
+
+
+class RecordingSpec(Strict):
+    enabled: bool = True
+    path: str | None = Field(None, description="MCAP file; default runs/<name>-<seed>.mcap")
+
+
+class CalibrateLoadStep(Strict):
+    pass
+
+
+class DragStep(Strict):
+    duration_s: float = Field(2.0, gt=0.0, le=600.0, description="how long (s)")
+    hand_force_n: Vec3 = Field((0.0, 0.0, 0.0),
+                               description="scripted operator hand force at the grip, base "
+                                           "frame (N; simulator only)")
+
+
+class AlignStep(Strict):
+    duration_s: float = Field(1.0, gt=0.0, le=600.0, description="how long (s)")
+    fz_n: float = Field(1.0, ge=-2.0, le=2.0, description="insertion force f_d z (N)")
+    rpm: float = Field(0.0, ge=0.0, le=200.0, description="file speed while aligning (rpm)")
+
+
+class RoundSpec(Strict):
+    duration_s: float = Field(gt=0.0, le=3600.0, description="round length (s)")
+
+
+class DrillStep(Strict):
+    strategy: Literal["automated", "feedrate", "reversal", "none"] = "automated"
+    tau_d_mnm: float = Field(40.0, gt=0.0, lt=FILE_TORQUE_LIMIT_MNM,
+                             description="desired file torque (mNm); thesis 40 or 50")
+    fz_min_n: float = Field(-0.5, ge=-2.0, le=0.0, description="feed force lower bound (N)")
+    fz_max_n: float = Field(0.5, gt=0.0, le=2.0, description="feed force upper bound (N)")
+    rpm: float = Field(60.0, gt=0.0, le=200.0, description="file speed (rpm); thesis 60")
+    rounds: list[RoundSpec] | None = Field(
+        None, description="rounds of continued passes, each until its duration; none: one pass")
+    section_mm: float = Field(2.0, ge=0.2, le=10.0, description="reversal strategy section")
+    min_rounds: int = Field(10, ge=1, le=100, description="reversal strategy rounds/section")
+
+
+StepName = Literal["calibrate_load", "drag", "align", "drill"]
+STEP_MODELS = {"calibrate_load": CalibrateLoadStep, "drag": DragStep, "align": AlignStep,
+               "drill": DrillStep}
+
+
+class Step(Strict):
+    """One step: exactly one of the keys below."""
+
+    calibrate_load: CalibrateLoadStep | None = None
+    drag: DragStep | None = None
+    align: AlignStep | None = None
+    drill: DrillStep | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _one_key(cls, data):
+        if isinstance(data, dict):
+            data = {k: ({} if v is None else v) for k, v in data.items()}
+            if len(data) != 1:
+                raise ValueError(f"a step has exactly one of {', '.join(STEP_MODELS)}; "
+                                 f"got {sorted(data) or 'none'}")
+        return data
+
+    @property
+    def kind(self) -> str:
+        return next(k for k in STEP_MODELS if getattr(self, k) is not None)
+
+    @property
+    def spec(self):
+        return getattr(self, self.kind)
+
+
+class Protocol(Strict):
+    name: str = Field(min_length=1, max_length=80)
+    description: str = ""
+    seed: int = Field(0, ge=0, le=2**32 - 1, description="simulator seed")
+    control: ControlSpec = ControlSpec()
+    tool: ToolSpec = ToolSpec()
+    file: FileSpec = FileSpec()
+    phantom: PhantomSpec = PhantomSpec()
+    patient: PatientSpec = PatientSpec()
+    limits: LimitsSpec = LimitsSpec()
+    recording: RecordingSpec = RecordingSpec()
+    steps: Annotated[list[Step], Field(min_length=1)]

@@ -1,0 +1,87 @@
+"""Protocol runs on the built-in simulator: steps, recordings that read back complete, the
+report from the file equal to the live summary, exit statuses, a safe abort."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+
+import pytest
+import structlog
+
+from dentibot.protocol.loader import parse_protocol
+from dentibot.protocol.runner import EXIT_CODES, ProtocolRunner
+from dentibot.telemetry.reader import read_recording
+from dentibot.telemetry.schema import validate_row
+from dentibot.telemetry.summary import summarize_file
+
+SHORT = """\
+name: short
+seed: 2
+phantom: {working_length_mm: 8.0, orifice_gap_mm: 2.0}
+steps:
+  - calibrate_load: {}
+  - drag: {duration_s: 0.4, hand_force_n: [0.0, 0.2, 0.0]}
+  - drag: {duration_s: 0.4, hand_force_n: [0.0, -0.2, 0.0]}
+  - align: {duration_s: 0.2, fz_n: 1.0}
+  - drill: {strategy: automated, tau_d_mnm: 40, rounds: [{duration_s: 6}]}
+"""
+
+
+@pytest.fixture(autouse=True)
+def _quiet():
+    structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
+
+
+async def test_run_records_every_tick_and_the_report_equals_the_live_summary(tmp_path):
+    path = tmp_path / "run.mcap"
+    res = await ProtocolRunner(parse_protocol(SHORT), recording=path).run()
+    s = res.summary
+    assert s.status == "ok" and res.exit_code == 0
+    assert [st.name for st in s.steps] == ["1:calibrate_load", "2:drag", "3:drag", "4:align",
+                                         "5:drill"]
+    assert s.fractures == 0 and s.completeness > 0.0
+    assert s.depth_reached_mm >= 7.9
+    rec = read_recording(path)
+    assert rec.complete and rec.status == "ok"
+    # every tick present: count = duration x rate, ticks numbered without a gap
+    ticks = [r["tick"] for r in rec.rows]
+    assert ticks == list(range(len(ticks)))
+    assert len(ticks) == round(s.duration_s * 500)
+    assert validate_row(rec.rows[-1]) == []
+    # the report from the file is the summary printed at the end of the run
+    assert summarize_file(path).to_dict() == s.to_dict()
+
+
+async def test_a_fault_or_fracture_ends_with_a_nonzero_status(tmp_path):
+    # the "none" ablation (constant feed, no torque regulation, no reversal) with a weak file
+    # (25 mNm instead of 62): the torque of a deep cut exceeds its strength
+    text = SHORT.replace("strategy: automated", "strategy: none").replace(
+        "working_length_mm: 8.0", "working_length_mm: 16.0").replace(
+        "seed: 2", "seed: 2\nfile: {torsional_strength_mnm: 25}").replace(
+        "duration_s: 6", "duration_s: 30")
+    res = await ProtocolRunner(parse_protocol(text), recording=tmp_path / "r.mcap").run()
+    assert res.summary.status == "fracture" and res.summary.fractures == 1
+    assert res.exit_code == EXIT_CODES[res.summary.status] != 0
+    assert res.summary.reason
+
+
+async def test_cancel_stops_safely_and_still_writes_recording_and_summary(tmp_path):
+    path = tmp_path / "abort.mcap"
+    runner = ProtocolRunner(parse_protocol(SHORT.replace("duration_s: 6", "duration_s: 60")),
+                            recording=path)
+    task = asyncio.create_task(runner.run())
+    while not runner.rt.treatment.in_state("treating"):
+        await asyncio.sleep(0.01)
+    for _ in range(20):           # let it drill into the canal a little
+        await asyncio.sleep(0.01)
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    w = runner.h.world
+    assert w.handpiece.cmd_rpm == 0.0 and runner.rt.state == "idle"
+    # withdrawn from the canal before stopping
+    assert runner.rt.last_row["true_depth_mm"] < 0.0
+    rec = read_recording(path)
+    assert rec.complete and rec.status == "aborted"
+    assert summarize_file(path).status == "aborted"
