@@ -1,0 +1,322 @@
+"""Auxiliary I/O driver over Modbus TCP (pymodbus ``AsyncModbusTcpClient``).
+
+:class:`AuxModbusDriver` implements :class:`dentibot.io.AuxIO` against any device serving the
+DentiBot register map (:mod:`dentibot.io.aux_registers`, ``docs/aux-io-register-map.md``):
+the clinic's PLC or :class:`dentibot.sim.aux_modbus_server.AuxModbusServer`.
+
+``connect()`` opens the TCP connection and reads input registers 0-1: anything but magic
+0x4442 with map major version 1 is refused with a DeviceFault naming what was read and what
+was expected. A background task then polls input registers 0..10 (one FC4 request: magic,
+version, heartbeat, pedal/e-stop word, platform status and actual position, a consistent
+snapshot) every ``poll_period_s`` on absolute deadlines. A poll whose heartbeat differs from
+the previous one is a new sample: ``seq`` grows by one and ``t`` is ``time.monotonic()`` at its
+reception. A poll with an unchanged heartbeat brings nothing new (counted in ``unchanged``).
+
+``read()`` returns the newest sample without waiting, or raises DeviceFault when there is none
+yet, the link is down, the newest poll failed (no answer, Modbus exception, malformed answer,
+wrong magic) or the newest sample is older than ``stale_after_s`` (heartbeat frozen). A
+dropped link is re-opened every ``reconnect_period_s`` by the same task; malformed answers are
+counted and logged (on change, not at the poll rate) and never stop the task.
+
+Counters: ``polls`` (requests sent), ``received`` (well-formed answers), ``unchanged`` (answers
+with the same heartbeat), ``errors`` (failed polls), ``lost`` (poll periods skipped because a
+poll or the event loop overran), ``reconnects``, ``writes``; ``seq`` is the sample count.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from typing import Self
+
+import structlog
+from pymodbus.client import AsyncModbusTcpClient
+from pymodbus.exceptions import ModbusException
+
+from dentibot.errors import ConfigError, DeviceFault, ProtocolError
+from dentibot.io.aux_registers import (
+    DEVICE,
+    EXCEPTION_CODES,
+    INDICATORS,
+    MAGIC,
+    MAP_VERSION,
+    AuxInputs,
+    Table,
+    decode_inputs,
+    encode_setpoint,
+    span,
+    version_text,
+)
+from dentibot.io.interfaces import AuxState
+
+log = structlog.get_logger(__name__)
+
+
+def _exception_text(response) -> str:
+    code = getattr(response, "exception_code", None)
+    return f"exception {code} ({EXCEPTION_CODES.get(code, 'unknown')})"
+
+
+class AuxModbusDriver:
+    """Pedal, e-stop, indicators and the motion platform over Modbus TCP (``AuxIO``).
+
+    Args:
+        host: the I/O PLC's address (``"192.168.0.50"``: the lab's convention, set in config).
+        port: Modbus TCP port (502, the standard).
+        device_id: Modbus unit id (1).
+        poll_period_s: input polling period (0.01 s = 100 Hz).
+        stale_after_s: ``read()`` faults when the newest sample (last heartbeat change) is
+            older than this (0.1 s = 10 poll periods; the device's heartbeat must advance
+            faster than this).
+        request_timeout_s: connect and per-request answer timeout (0.2 s), no retries (the
+            next poll is the retry).
+        reconnect_period_s: pause between attempts to re-open a dropped link (0.5 s).
+    """
+
+    def __init__(self, host: str = "192.168.0.50", port: int = 502, device_id: int = 1,
+                 poll_period_s: float = 0.01, stale_after_s: float = 0.1,
+                 request_timeout_s: float = 0.2, reconnect_period_s: float = 0.5) -> None:
+        for field, v in (("poll_period_s", poll_period_s), ("stale_after_s", stale_after_s),
+                         ("request_timeout_s", request_timeout_s),
+                         ("reconnect_period_s", reconnect_period_s)):
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+                raise ConfigError(f"aux_modbus.{field}", v, "a positive number of seconds")
+        if not (isinstance(device_id, int) and 0 <= device_id <= 255):
+            raise ConfigError("aux_modbus.device_id", device_id, "0..255")
+        if not (isinstance(port, int) and 0 < port < 65536):
+            raise ConfigError("aux_modbus.port", port, "1..65535")
+        self.host = host
+        self.port = port
+        self.device_id = device_id
+        self.poll_period_s = float(poll_period_s)
+        self.stale_after_s = float(stale_after_s)
+        self.request_timeout_s = float(request_timeout_s)
+        self.reconnect_period_s = float(reconnect_period_s)
+        self.polls = self.received = self.unchanged = self.errors = self.lost = 0
+        self.reconnects = self.writes = self.seq = 0
+        #: (magic, map_version) read at connect.
+        self.identity: tuple[int, int] | None = None
+        self._client: AsyncModbusTcpClient | None = None
+        self._task: asyncio.Task | None = None
+        self._sample: AuxState | None = None
+        self._inputs: AuxInputs | None = None
+        self._heartbeat: int | None = None
+        self._last_error: str | None = None
+        self._link_up = False
+        self._stopping = False
+
+    # ------------------------------------------------------------------ life cycle
+    @property
+    def connected(self) -> bool:
+        """The TCP link is up (samples may still be stale)."""
+        return self._link_up and self._client is not None and self._client.connected
+
+    async def connect(self) -> None:
+        """Open the link, check magic and version, take a first sample, start polling."""
+        if self._task is not None:
+            return
+        self._stopping = False
+        self._client = AsyncModbusTcpClient(
+            self.host, port=self.port, name=DEVICE, timeout=self.request_timeout_s,
+            retries=0, reconnect_delay=0)
+        try:
+            if not await self._client.connect():
+                raise DeviceFault(DEVICE, f"cannot connect to {self.host}:{self.port}")
+            self.identity = await self._check_identity()
+            self._link_up = True
+            await self._poll_once()
+            if self._last_error is not None:
+                raise DeviceFault(DEVICE, f"first poll failed: {self._last_error}")
+        except BaseException:
+            await self._drop_client()
+            raise
+        self._task = asyncio.create_task(self._run(), name=f"{DEVICE}-poll")
+        log.info("aux_modbus.connected", host=self.host, port=self.port,
+                 device_id=self.device_id, map_version=version_text(self.identity[1]))
+
+    async def close(self) -> None:
+        """Stop polling and close the link; idempotent."""
+        task, self._task = self._task, None
+        self._stopping = True
+        if task is not None:
+            # Python 3.11's asyncio.wait_for (inside pymodbus's connect and requests) can
+            # swallow a cancellation that coincides with its inner future finishing: cancel
+            # until the task is really done (the loop also checks _stopping).
+            while not task.done():
+                task.cancel()
+                await asyncio.wait({task}, timeout=0.1)
+            if not task.cancelled() and task.exception() is not None:
+                log.error("aux_modbus.poll_task_died", error=repr(task.exception()))
+        self._link_up = False
+        await self._drop_client()
+
+    async def __aenter__(self) -> Self:
+        await self.connect()
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.close()
+
+    async def _drop_client(self) -> None:
+        client, self._client = self._client, None
+        if client is not None:
+            client.close()
+            for _ in range(2):          # let the transport's connection_lost close the socket
+                await asyncio.sleep(0)
+
+    async def _check_identity(self) -> tuple[int, int]:
+        expected = f"magic 0x{MAGIC:04X} ('DB') with map version {MAP_VERSION[0]}.x"
+        try:
+            rr = await self._client.read_input_registers(0, count=2, device_id=self.device_id)
+        except ModbusException as exc:
+            raise DeviceFault(DEVICE, f"no answer reading input registers 0-1 ({exc}); "
+                                      f"expected {expected}") from exc
+        if rr.isError():
+            raise DeviceFault(DEVICE, f"input registers 0-1 answered {_exception_text(rr)}; "
+                                      f"expected {expected}: not a DentiBot-map device?")
+        regs = list(getattr(rr, "registers", []))
+        if len(regs) != 2:
+            raise DeviceFault(DEVICE, f"input registers 0-1 answered {regs!r}; "
+                                      f"expected {expected}")
+        magic, version = regs
+        if magic != MAGIC or version >> 8 != MAP_VERSION[0]:
+            raise DeviceFault(DEVICE, f"read magic 0x{magic:04X} with map version "
+                                      f"{version_text(version)} at input registers 0-1; "
+                                      f"expected {expected}")
+        return magic, version
+
+    # ------------------------------------------------------------------ polling
+    async def _run(self) -> None:
+        period = self.poll_period_s
+        deadline = time.monotonic()
+        while not self._stopping:
+            deadline += period
+            now = time.monotonic()
+            if now > deadline:                  # overran: skip whole periods, never burst
+                missed = int((now - deadline) / period) + 1
+                self.lost += missed
+                deadline += missed * period
+            await asyncio.sleep(deadline - now)
+            try:
+                if not self._client.connected:
+                    await self._reconnect()
+                    deadline = time.monotonic()
+                    continue
+                await self._poll_once()
+            except Exception as exc:   # noqa: BLE001 - nothing unforeseen may stop the reader
+                self._fail(f"unexpected {type(exc).__name__}: {exc}")
+
+    async def _reconnect(self) -> None:
+        if self._link_up:
+            self._link_up = False
+            self._fail(f"link to {self.host}:{self.port} lost")
+        while not self._client.connected:
+            if self._stopping:
+                return
+            if await self._client.connect():
+                break
+            await asyncio.sleep(self.reconnect_period_s)
+        self.reconnects += 1
+        self._heartbeat = None
+        self._link_up = True
+        log.info("aux_modbus.reconnected", host=self.host, port=self.port)
+
+    async def _poll_once(self) -> None:
+        first, n = span(Table.INPUT_REGISTER)
+        self.polls += 1
+        try:
+            rr = await self._client.read_input_registers(first, count=n,
+                                                         device_id=self.device_id)
+        except ModbusException as exc:
+            self._fail(f"no answer to the input-register poll ({exc})")
+            return
+        t = time.monotonic()
+        if rr.isError():
+            self._fail(f"input registers {first}..{first + n - 1} answered {_exception_text(rr)}")
+            return
+        try:
+            inp = decode_inputs(list(rr.registers))
+        except ProtocolError as exc:
+            self._fail(f"malformed answer: {exc}")
+            return
+        if not inp.identity_ok:
+            self._fail(f"magic/version changed to 0x{inp.magic:04X}/"
+                       f"{version_text(inp.map_version)} (device replaced?)")
+            return
+        self.received += 1
+        if self._last_error is not None:
+            log.info("aux_modbus.recovered", after=self._last_error)
+            self._last_error = None
+        if inp.heartbeat == self._heartbeat:
+            self.unchanged += 1
+            return
+        self._heartbeat = inp.heartbeat
+        self.seq += 1
+        self._inputs = inp
+        self._sample = AuxState(t, self.seq, inp.pedal, inp.estop, inp.platform_mm)
+
+    def _fail(self, why: str) -> None:
+        self.errors += 1
+        if why != self._last_error:            # log changes, not every failed poll
+            log.warning("aux_modbus.poll_failed", host=self.host, port=self.port, reason=why,
+                        errors=self.errors)
+        self._last_error = why
+
+    # ------------------------------------------------------------------ AuxIO
+    async def read(self) -> AuxState:
+        """Newest sample (pedal, e-stop, platform actual position mm); DeviceFault if none,
+        link down, newest poll failed, or stale."""
+        s = self._sample
+        if s is None:
+            raise DeviceFault(DEVICE, "no sample yet (connect() first)")
+        if self._task is None or self._task.done():
+            raise DeviceFault(DEVICE, "not polling (closed)"
+                              + (f"; last error: {self._last_error}" if self._last_error else ""))
+        if not self.connected:
+            raise DeviceFault(DEVICE, f"link to {self.host}:{self.port} down"
+                                      + (f" ({self._last_error})" if self._last_error else ""))
+        if self._last_error is not None:
+            raise DeviceFault(DEVICE, f"newest poll failed: {self._last_error}")
+        age = time.monotonic() - s.t
+        if age > self.stale_after_s:
+            raise DeviceFault(DEVICE, f"stale: heartbeat {self._heartbeat} last changed "
+                                      f"{age * 1e3:.0f} ms ago, limit "
+                                      f"{self.stale_after_s * 1e3:.0f} ms")
+        return s
+
+    @property
+    def inputs(self) -> AuxInputs | None:
+        """The newest full input snapshot (also platform moving/fault/setpoint-rejected and
+        the raw heartbeat); no staleness check, use ``read()`` for that."""
+        return self._inputs
+
+    async def set_indicator(self, name: str, on: bool) -> None:
+        """Switch a lamp or the buzzer (coil write, FC5)."""
+        address = INDICATORS.get(name)
+        if address is None:
+            raise ConfigError("indicator", name, f"one of {', '.join(INDICATORS)}")
+        await self._write(f"coil {address} ({name})",
+                          self._client.write_coil if self._client else None,
+                          address, bool(on))
+
+    async def set_platform(self, mm) -> None:
+        """Command the platform to (x, y, z) mm: range-checked here (ConfigError naming axis,
+        value and limit) before anything is sent, then one FC16 write of HR 0..5."""
+        words = encode_setpoint(mm)
+        first, _ = span(Table.HOLDING_REGISTER)
+        await self._write(f"platform setpoint {tuple(mm)} mm",
+                          self._client.write_registers if self._client else None,
+                          first, words)
+
+    async def _write(self, what: str, method, address: int, value) -> None:
+        if method is None or not self.connected:
+            raise DeviceFault(DEVICE, f"cannot write {what}: link to {self.host}:{self.port} "
+                                      "down")
+        try:
+            rr = await method(address, value, device_id=self.device_id)
+        except ModbusException as exc:
+            raise DeviceFault(DEVICE, f"no answer writing {what} ({exc})") from exc
+        if rr.isError():
+            raise DeviceFault(DEVICE, f"writing {what} refused: {_exception_text(rr)}")
+        self.writes += 1
