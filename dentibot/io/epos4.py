@@ -1,0 +1,956 @@
+"""Maxon EPOS4 driver: the handpiece motor over CANopen (CiA 301 / CiA 402), asyncio.
+
+:class:`Epos4Driver` implements :class:`dentibot.io.Handpiece` on any python-can bus: kernel
+SocketCAN (``interface="socketcan"``, the default, channel ``"can0"``), a socketcand server
+(``interface="socketcand"``, host/port), python-can's in-process ``virtual`` bus, or a bus
+factory of your own.
+
+Start-up (``connect()``; SDOs only here, never in the cyclic exchange):
+
+1. NMT *enter pre-operational* (PDOs stop, SDOs keep working).
+2. Read the device type 0x1000 (low word must be 402), vendor id, error code 0x603F and
+   register 0x1001, motor data (0x3001:01 nominal current mA, 0x3001:05 torque constant
+   uNm/A), rated torque 0x6076 (uNm), gear 0x3003:01/02, main sensor resolution 0x3000:05
+   (increments per motor turn), statusword 0x6041.
+3. Write the producer heartbeat time 0x1017 (``heartbeat_ms``).
+4. Configure the project's PDO mapping (:data:`~dentibot.io.canopen_protocol.PROJECT_PDOS`):
+   per PDO, COB-ID invalid -> transmission type -> mapping count 0 -> entries -> count ->
+   COB-ID valid; then read everything back and compare (``configure_pdos=False``: only
+   compare, for a drive configured by other means).
+5. NMT *start*; the cyclic exchange begins (own task with ``sync=True``, else the caller's
+   ``exchange()``); a FAULT found at start-up is reset; then the CiA 402 enable sequence
+   (shutdown -> switch on -> enable operation), each step waiting for the statusword in
+   TxPDO1, ``state_timeout_s`` in all -> :class:`DeviceFault` naming the state it got stuck in.
+
+Cyclic exchange (every ``sync_period_s``): RxPDO2 (target position, profile velocity), RxPDO1
+(controlword, target velocity, mode), then SYNC; the drive answers with TxPDO1 (statusword,
+velocity actual, mode display) and TxPDO2 (position actual, current actual averaged).
+RxPDO2 goes first so that a new position set-point is in place when the controlword's
+new-set-point edge arrives (both RxPDOs are asynchronous, type 255). Reception runs in python-
+can's Notifier, handed to this event loop; nothing blocks. One complete TxPDO1+TxPDO2 pair is
+one sample (``seq`` +1); answers are matched to SYNCs in order, a SYNC unanswered after
+``answer_timeout_s`` counts as lost.
+
+``read()`` -> :class:`MotorState` at the *file*: ``velocity_rpm = velocity actual / gear``,
+``position_deg = increments / counts_per_turn * 360 / gear`` (unwrapped across the INTEGER32
+overflow), ``current_a = 0x30D1:01 / 1000``. It raises :class:`DeviceFault` when there is no
+sample, the newest is older than ``stale_after_s``, the heartbeat is silent beyond
+``heartbeat_timeout_s``, an EMCY reported an error (naming the code and its meaning), the
+drive is in FAULT, the node rebooted, or the link is down.
+
+Commands: ``set_velocity`` (profile velocity mode 3, file rpm * gear -> 0x60FF),
+``move_relative`` (profile position mode 1, relative bit 6, new-set-point bit 4 handshake
+with the set-point acknowledge bit 12; ``wait_move_done()`` waits for target reached),
+``stop()`` = profile velocity 0 rpm: the drive ramps down and stays enabled, holding zero speed
+(use ``quick_stop()`` for the CiA 402 quick stop, after which ``enable()`` is needed),
+``fault_reset()`` (rising edge of controlword bit 7) and ``enable()``.
+
+``close()`` commands 0 rpm and *shutdown* (power stage off) in one last cycle, sends NMT
+*enter pre-operational*, stops the Notifier and shuts the bus down.
+
+Assumptions (unconfirmed, read from the drive where possible): velocity unit rpm (0x60A9
+default), torque constant in uNm/A and rated torque in uNm, encoder 2048 increments per motor
+turn (a 512-pulse encoder, x4) unless the drive reports 0x3000:05.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any, Self
+
+import can
+import structlog
+
+from dentibot.errors import ConfigError, DeviceFault, ProtocolError
+from dentibot.io import canopen_protocol as co
+from dentibot.io.canopen_protocol import (
+    CONTROLWORD,
+    CW_CHANGE_SET_IMMEDIATELY,
+    CW_NEW_SETPOINT,
+    CW_RELATIVE,
+    ENABLE_STEP,
+    PDO_COB_INVALID,
+    PDO_COB_NO_RTR,
+    PROJECT_PDOS,
+    RXPDO1,
+    RXPDO2,
+    SW_SETPOINT_ACK,
+    SW_TARGET_REACHED,
+    TXPDO1,
+    TXPDO2,
+    Command,
+    Emcy,
+    Mode,
+    NmtCommand,
+    NmtState,
+    OdObject,
+    SdoFrame,
+    State,
+)
+from dentibot.io.interfaces import MotorState
+
+log = structlog.get_logger(__name__)
+
+#: Increments per motor turn used when the drive does not report 0x3000:05: a 512-pulse
+#: quadrature encoder counted x4 (assumption for the handpiece motor).
+DEFAULT_COUNTS_PER_TURN = 2048
+#: Bad frames logged one by one before logging only every ``_LOG_EVERY``-th.
+_LOG_FIRST, _LOG_EVERY = 10, 1000
+#: Notifier receive timeout (s): how long ``close()`` may wait for the reader thread.
+_NOTIFIER_TIMEOUT_S = 0.05
+
+_TX1, _TX2 = TXPDO1.layout, TXPDO2.layout
+_RX1, _RX2 = RXPDO1.layout, RXPDO2.layout
+_I32_MIN, _I32_MAX = co.I32.range
+
+
+class SdoAbort(DeviceFault):
+    """The drive refused an SDO: ``code`` (CiA 301 abort code), ``index``, ``sub``."""
+
+    def __init__(self, device: str, index: int, sub: int, code: int, verb: str) -> None:
+        self.index, self.sub, self.code = index, sub, code
+        super().__init__(device, f"SDO {verb} 0x{index:04X}:{sub:02X} aborted with 0x{code:08X}"
+                                 f" ({co.sdo_abort_meaning(code)})")
+
+
+async def _in_thread(fn: Callable[[], Any], name: str) -> Any:
+    """Run a blocking ``fn`` (opening a bus: socketcand's handshake blocks) in a short-lived
+    thread, joined when done, so the event loop keeps serving (e.g. an in-process server)."""
+    loop = asyncio.get_running_loop()
+    fut: asyncio.Future = loop.create_future()
+
+    def deliver(ok: bool, value: Any) -> None:
+        if fut.cancelled():
+            if ok and hasattr(value, "shutdown"):
+                value.shutdown()          # a bus nobody is waiting for any more
+            return
+        if ok:
+            fut.set_result(value)
+        else:
+            fut.set_exception(value)
+
+    def run() -> None:
+        try:
+            value, ok = fn(), True
+        except BaseException as exc:  # noqa: BLE001 - handed to the awaiting task
+            value, ok = exc, False
+        try:
+            loop.call_soon_threadsafe(deliver, ok, value)
+        except RuntimeError:              # loop closed meanwhile
+            if ok and hasattr(value, "shutdown"):
+                value.shutdown()
+
+    th = threading.Thread(target=run, name=name, daemon=True)
+    th.start()
+    result = await fut
+    th.join(timeout=1.0)
+    return result
+
+
+class _Listener(can.Listener):
+    """python-can listener handing frames (and reader-thread errors) to the driver."""
+
+    def __init__(self, driver: Epos4Driver) -> None:
+        self.driver = driver
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.driver._on_message(msg)
+
+    def on_error(self, exc: Exception) -> None:
+        self.driver._on_link_error(exc)
+
+
+class Epos4Driver:
+    """Maxon EPOS4 handpiece drive over CANopen (implements ``dentibot.io.Handpiece``).
+
+    Args:
+        bus_factory: zero-argument callable returning an open ``can.BusABC``; the driver
+            owns it (shuts it down on close). None: ``can.Bus(interface, channel, ...)``.
+        interface: python-can interface name ("socketcan", "socketcand", "virtual", ...).
+        channel: CAN channel ("can0"; for socketcand the server's channel, e.g. "vcan0").
+        host, port: socketcand server address (29536 is socketcand's default port).
+        bus_kwargs: extra keyword arguments for ``can.Bus`` (e.g. ``bitrate``). For
+            socketcand ``tcp_tune=True`` (TCP_NODELAY) is the default here.
+        node_id: CANopen node id of the drive (1).
+        gear_ratio: handpiece gear, motor turns per file turn (67, thesis 5.1). The drive's
+            0x3003 is read and a mismatch logged; this value is used.
+        encoder_counts_per_turn: increments per motor turn if the drive does not report
+            0x3000:05 (2048: 512-pulse encoder x4, assumption).
+        sync_period_s: cycle of the own SYNC task (0.002 s = 500 Hz).
+        max_file_rpm: largest |speed| accepted at the file (200 rpm, thesis 5.1).
+        move_rpm: file speed of ``move_relative`` moves (100 rpm).
+        heartbeat_ms: producer heartbeat time written to 0x1017 (100 ms; None: keep the
+            drive's); heartbeat_timeout_s: silence that faults ``read()`` (0.5 s).
+        stale_after_s: newest TxPDO older than this faults ``read()`` (0.1 s = 50 cycles).
+        answer_timeout_s: a SYNC unanswered for this long counts as lost (0.1 s).
+        sdo_timeout_s: per SDO request (0.5 s); state_timeout_s: for enable / fault reset
+            (1.0 s).
+        configure_pdos: write the PDO mapping at start-up (True) or only verify it.
+        name: device name in errors and logs.
+    """
+
+    def __init__(self, bus_factory: Callable[[], can.BusABC] | None = None, *,
+                 interface: str = "socketcan", channel: str = "can0",
+                 host: str = "127.0.0.1", port: int = 29536,
+                 bus_kwargs: dict[str, Any] | None = None, node_id: int = 1,
+                 gear_ratio: float = 67.0,
+                 encoder_counts_per_turn: int = DEFAULT_COUNTS_PER_TURN,
+                 sync_period_s: float = 0.002, max_file_rpm: float = 200.0,
+                 move_rpm: float = 100.0, heartbeat_ms: int | None = 100,
+                 heartbeat_timeout_s: float = 0.5, stale_after_s: float = 0.1,
+                 answer_timeout_s: float = 0.1, sdo_timeout_s: float = 0.5,
+                 state_timeout_s: float = 1.0, configure_pdos: bool = True,
+                 name: str = co.DEVICE) -> None:
+        self.node_id = co.check_node_id(node_id)
+        for field, v, lo in (("epos4.gear_ratio", gear_ratio, 0.0),
+                             ("epos4.sync_period_s", sync_period_s, 0.0),
+                             ("epos4.max_file_rpm", max_file_rpm, 0.0),
+                             ("epos4.heartbeat_timeout_s", heartbeat_timeout_s, 0.0),
+                             ("epos4.stale_after_s", stale_after_s, 0.0),
+                             ("epos4.answer_timeout_s", answer_timeout_s, 0.0),
+                             ("epos4.sdo_timeout_s", sdo_timeout_s, 0.0),
+                             ("epos4.state_timeout_s", state_timeout_s, 0.0)):
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > lo):
+                raise ConfigError(field, v, f"a finite number > {lo}")
+        if not 0 < move_rpm <= max_file_rpm:
+            raise ConfigError("epos4.move_rpm", move_rpm, f"0 < rpm <= {max_file_rpm}")
+        if not (isinstance(encoder_counts_per_turn, int) and encoder_counts_per_turn > 0):
+            raise ConfigError("epos4.encoder_counts_per_turn", encoder_counts_per_turn,
+                              "a positive integer (increments per motor turn)")
+        if heartbeat_ms is not None and not (isinstance(heartbeat_ms, int)
+                                             and 0 <= heartbeat_ms <= 0xFFFF):
+            raise ConfigError("epos4.heartbeat_ms", heartbeat_ms, "None or 0..65535 ms")
+        self._bus_factory = bus_factory
+        self.interface, self.channel = interface, channel
+        self.host, self.port = host, port
+        self.bus_kwargs = dict(bus_kwargs or {})
+        self.gear_ratio = float(gear_ratio)
+        self.counts_per_turn = encoder_counts_per_turn
+        self.sync_period_s = float(sync_period_s)
+        self.max_file_rpm = float(max_file_rpm)
+        self.move_rpm = float(move_rpm)
+        self.heartbeat_ms = heartbeat_ms
+        self.heartbeat_timeout_s = float(heartbeat_timeout_s)
+        self.stale_after_s = float(stale_after_s)
+        self.answer_timeout_s = float(answer_timeout_s)
+        self.sdo_timeout_s = float(sdo_timeout_s)
+        self.state_timeout_s = float(state_timeout_s)
+        self.configure_pdos = bool(configure_pdos)
+        self.name = name
+        nid = self.node_id
+        self._cob = {fn: co.cob_id(fn, nid) for fn in
+                     ("RPDO1", "RPDO2", "TPDO1", "TPDO2", "SDO_RX", "SDO_TX", "EMCY",
+                      "HEARTBEAT")}
+        self._handlers: dict[int, Callable[[bytes, float], None]] = {
+            self._cob["TPDO1"]: self._on_tpdo1,
+            self._cob["TPDO2"]: self._on_tpdo2,
+            self._cob["SDO_TX"]: self._on_sdo,
+            self._cob["EMCY"]: self._on_emcy,
+            self._cob["HEARTBEAT"]: self._on_heartbeat,
+        }
+        # counters
+        self.syncs_sent = 0
+        self.received = 0           # complete TxPDO1+TxPDO2 samples (= seq of the newest)
+        self.lost = 0               # SYNCs not answered within answer_timeout_s
+        self.unsolicited = 0        # samples with no SYNC waiting (answers after "lost")
+        self.incomplete = 0         # a TxPDO1 or TxPDO2 without its partner
+        self.errors = 0             # frames that broke the protocol (wrong length ...)
+        self.emcy_count = 0
+        self.heartbeats = 0
+        self.sdo_requests = 0
+        self.sdo_aborts = 0
+        self.sdo_timeouts = 0
+        self.send_errors = 0
+        self.overruns = 0           # own SYNC cycles skipped because the loop was late
+        self.latency_last_s = 0.0   # SYNC sent -> TxPDO2 received
+        self.latency_max_s = 0.0
+        self._latency_sum = 0.0
+        # drive data (read at start-up)
+        self.device_type = 0
+        self.vendor_id = 0
+        self.km_mnm_per_a = 0.0
+        self.nominal_current_a = 0.0
+        self.rated_torque_mnm = 0.0
+        self.device_gear: tuple[int, int] = (0, 0)
+        self.startup_error_code = 0
+        # live state
+        self.statusword: int | None = None
+        self.state: State | None = None
+        self.mode_display: int | None = None
+        self.nmt_state: NmtState | None = None
+        self.last_emcy: Emcy | None = None
+        self._emcy_fault: Emcy | None = None
+        self._link_error: str | None = None
+        self._rebooted = False
+        self._sample: MotorState | None = None
+        self._tx1: tuple[int, State, int, int] | None = None
+        self._pos_raw: int | None = None
+        self._pos_inc = 0
+        self._outstanding: deque[float] = deque()
+        self._matched = 0
+        self._hb_t = 0.0
+        # command image sent every cycle
+        self._cw = CONTROLWORD[Command.DISABLE_VOLTAGE]
+        self._mode = int(Mode.PROFILE_VELOCITY)
+        self._target_vel = 0
+        self._target_pos = 0
+        self._profile_vel = round(self.move_rpm * self.gear_ratio)
+        self._sp = "idle"           # new set-point handshake: idle, request, sent, acked
+        self._sp_sync = 0           # number of the SYNC that carried the set-point edge
+        self._last_bit4 = False     # bit 4 of the last controlword sent
+        # plumbing
+        self._bus: can.BusABC | None = None
+        self._notifier: can.Notifier | None = None
+        self._sync_task: asyncio.Task | None = None
+        self._sdo_lock: asyncio.Lock | None = None
+        self._sdo_pending: tuple[int, int, asyncio.Future] | None = None
+        self._rx_event: asyncio.Event | None = None
+        self._connected = False     # bus open
+        self._started = False       # NMT started, cyclic exchange possible
+        self._closed = False
+
+    # ================================================================== lifecycle
+    def _make_bus(self) -> can.BusABC:
+        if self._bus_factory is not None:
+            return self._bus_factory()
+        kw = dict(self.bus_kwargs)
+        if self.interface == "socketcand":
+            kw.setdefault("host", self.host)
+            kw.setdefault("port", self.port)
+            kw.setdefault("tcp_tune", True)
+        return can.Bus(interface=self.interface, channel=self.channel, **kw)
+
+    def _bus_description(self) -> str:
+        if self._bus_factory is not None:
+            return "from the bus factory"
+        if self.interface == "socketcand":
+            return f"socketcand {self.host}:{self.port} channel {self.channel}"
+        return f"{self.interface} channel {self.channel}"
+
+    async def connect(self, sync: bool = True) -> None:
+        """Open the bus, configure the drive over SDO, start it and enable operation.
+
+        ``sync=True`` starts the own cyclic task (RxPDOs + SYNC every ``sync_period_s``);
+        with ``sync=False`` the caller drives the cycle with :meth:`exchange` (the start-up
+        waits then run their own exchanges)."""
+        if self._connected:
+            return
+        if self._closed:
+            raise DeviceFault(self.name, "driver closed; create a new one to reconnect")
+        loop = asyncio.get_running_loop()
+        self._sdo_lock = asyncio.Lock()
+        self._rx_event = asyncio.Event()
+        try:
+            self._bus = await _in_thread(self._make_bus, f"{self.name}-open-bus")
+        except (can.CanError, OSError, ValueError, TypeError, ImportError) as exc:
+            raise DeviceFault(self.name, f"cannot open CAN bus {self._bus_description()}: "
+                                         f"{exc}") from exc
+        self._notifier = can.Notifier(self._bus, [_Listener(self)],
+                                      timeout=_NOTIFIER_TIMEOUT_S, loop=loop)
+        self._connected = True
+        try:
+            await self._start_up(sync)
+        except BaseException:
+            await self.close()
+            raise
+
+    async def close(self) -> None:
+        """Stop the cycle, leave the drive disabled (0 rpm, shutdown) and pre-operational,
+        stop the reader and shut the bus down. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        await self.stop_sync()
+        if self._started and self._link_error is None:
+            self._target_vel = 0
+            self._mode = int(Mode.PROFILE_VELOCITY)
+            self._sp = "idle"
+            self._cw = CONTROLWORD[Command.SHUTDOWN]
+            try:
+                self._send_cycle()
+                self._send(co.COB_BASE["NMT"],
+                           co.encode_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id))
+            except DeviceFault:
+                pass
+        self._started = False
+        self._connected = False
+        if self._notifier is not None:
+            self._notifier.stop(timeout=1.0)
+            self._notifier = None
+        if self._bus is not None:
+            bus, self._bus = self._bus, None
+            try:
+                bus.shutdown()
+            except (can.CanError, OSError) as exc:
+                log.warning("epos4 bus shutdown failed", device=self.name, error=str(exc))
+        fut = self._sdo_pending[2] if self._sdo_pending else None
+        if fut is not None and not fut.done():
+            fut.cancel()
+        log.info("epos4 closed", device=self.name, syncs=self.syncs_sent,
+                 received=self.received, lost=self.lost, errors=self.errors)
+
+    async def __aenter__(self) -> Self:
+        await self.connect()
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.close()
+
+    async def _start_up(self, sync: bool) -> None:
+        nid = self.node_id
+        self._send(co.COB_BASE["NMT"], co.encode_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, nid))
+        self.device_type = await self.sdo_read("device_type")
+        if self.device_type & 0xFFFF != 402:
+            raise DeviceFault(self.name, f"node {nid}: device type 0x{self.device_type:08X} is "
+                                         "not a CiA 402 drive (low word must be 402 = 0x0192)")
+        self.vendor_id = await self.sdo_read("vendor_id")
+        self.startup_error_code = await self.sdo_read("error_code")
+        register = await self.sdo_read("error_register")
+        self.km_mnm_per_a = await self.sdo_read("motor_torque_constant") / 1000.0
+        self.nominal_current_a = await self.sdo_read("motor_nominal_current") / 1000.0
+        self.rated_torque_mnm = await self.sdo_read("motor_rated_torque") / 1000.0
+        self.device_gear = (await self.sdo_read("gear_reduction_numerator"),
+                            await self.sdo_read("gear_reduction_denominator"))
+        num, den = self.device_gear
+        if den and abs(num / den - self.gear_ratio) > 1e-6:
+            log.warning("epos4 gear configuration differs", device=self.name,
+                        drive_gear=f"{num}/{den}", used=self.gear_ratio)
+        resolution = await self.sdo_read("axis_main_sensor_resolution")
+        if resolution > 0 and resolution != self.counts_per_turn:
+            log.warning("epos4 sensor resolution from the drive", device=self.name,
+                        drive=resolution, configured=self.counts_per_turn)
+            self.counts_per_turn = resolution
+        if self.heartbeat_ms is not None:
+            await self.sdo_write("producer_heartbeat_time", self.heartbeat_ms)
+        else:
+            self.heartbeat_ms = await self.sdo_read("producer_heartbeat_time")
+        self.statusword = await self.sdo_read("statusword")
+        self.state = co.state_from_statusword(self.statusword)
+        log.info("epos4 drive", device=self.name, node=nid, vendor=hex(self.vendor_id),
+                 km_mnm_per_a=self.km_mnm_per_a, rated_torque_mnm=self.rated_torque_mnm,
+                 counts_per_turn=self.counts_per_turn, error_code=hex(self.startup_error_code),
+                 error_register=hex(register), state=self.state.value)
+        await self._setup_pdos()
+        self._profile_vel = round(self.move_rpm * self.gear_ratio)
+        self._cw = CONTROLWORD[Command.DISABLE_VOLTAGE]
+        self._send(co.COB_BASE["NMT"], co.encode_nmt(NmtCommand.START, nid))
+        self.nmt_state = NmtState.OPERATIONAL
+        self._hb_t = time.monotonic()
+        self._started = True
+        if sync:
+            self.start_sync()
+        if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE) or self.startup_error_code:
+            await self.fault_reset()
+        await self.enable()
+
+    async def _setup_pdos(self) -> None:
+        for pdo in PROJECT_PDOS:
+            cob = pdo.cob_id(self.node_id)
+            cob_word = cob | (PDO_COB_NO_RTR if pdo.direction == "tx" else 0)
+            words = pdo.layout.words
+            comm, mp = pdo.comm_index, pdo.map_index
+            if self.configure_pdos:
+                await self._sdo_write_at(comm, 1, cob_word | PDO_COB_INVALID)
+                await self._sdo_write_at(comm, 2, pdo.transmission_type)
+                await self._sdo_write_at(mp, 0, 0)
+                for i, w in enumerate(words, 1):
+                    await self._sdo_write_at(mp, i, w)
+                await self._sdo_write_at(mp, 0, len(words))
+                await self._sdo_write_at(comm, 1, cob_word)
+            got_cob = await self._sdo_read_at(comm, 1)
+            got_type = await self._sdo_read_at(comm, 2)
+            n = await self._sdo_read_at(mp, 0)
+            got_words = tuple([await self._sdo_read_at(mp, i)
+                               for i in range(1, min(n, 8) + 1)])
+            if (got_cob & PDO_COB_INVALID or got_cob & 0x7FF != cob or got_words != words
+                    or got_type != pdo.transmission_type):
+                raise DeviceFault(self.name, (
+                    f"{pdo.name} reads back COB-ID 0x{got_cob:08X}, type {got_type}, mapping "
+                    f"{[f'0x{w:08X}' for w in got_words]}; expected COB-ID 0x{cob:03X} valid, "
+                    f"type {pdo.transmission_type}, mapping {[f'0x{w:08X}' for w in words]}"))
+
+    # ================================================================== SDO client
+    def _resolve(self, obj: str | OdObject) -> OdObject:
+        return co.obj(obj) if isinstance(obj, str) else obj
+
+    async def sdo_read(self, obj: str | OdObject) -> int:
+        """Read object ``obj`` (a name in ``canopen_protocol.OBJECTS`` or an OdObject) by an
+        expedited SDO upload. Start-up and diagnostics only: never in the control loop."""
+        o = self._resolve(obj)
+        frame = await self._sdo(o.index, o.sub, co.encode_sdo_upload(o.index, o.sub), "upload")
+        if frame.kind == "upload":
+            return o.dtype.decode(frame.payload, f"SDO upload {o}")
+        if frame.kind == "upload_segmented":
+            raise DeviceFault(self.name, f"SDO upload {o}: the drive answered with a segmented "
+                                         "transfer (not supported here)")
+        raise ProtocolError(self.name, f"SDO upload {o}: unexpected answer '{frame.kind}'")
+
+    async def sdo_write(self, obj: str | OdObject, value: int) -> None:
+        """Write ``value`` to object ``obj`` by an expedited SDO download."""
+        o = self._resolve(obj)
+        payload = o.dtype.encode(value, f"{self.name}.{o.name}")
+        frame = await self._sdo(o.index, o.sub, co.encode_sdo_download(o.index, o.sub, payload),
+                                "download")
+        if frame.kind != "download_ack":
+            raise ProtocolError(self.name, f"SDO download {o}: unexpected answer '{frame.kind}'")
+
+    async def _sdo_read_at(self, index: int, sub: int) -> int:
+        return await self.sdo_read(co.OBJECTS_BY_ADDRESS[(index, sub)])
+
+    async def _sdo_write_at(self, index: int, sub: int, value: int) -> None:
+        await self.sdo_write(co.OBJECTS_BY_ADDRESS[(index, sub)], value)
+
+    async def _sdo(self, index: int, sub: int, request: bytes, verb: str) -> SdoFrame:
+        if not self._connected or self._sdo_lock is None:
+            raise DeviceFault(self.name, "not connected")
+        async with self._sdo_lock:
+            fut = asyncio.get_running_loop().create_future()
+            self._sdo_pending = (index, sub, fut)
+            self.sdo_requests += 1
+            try:
+                self._send(self._cob["SDO_RX"], request)
+                frame = await asyncio.wait_for(fut, self.sdo_timeout_s)
+            except TimeoutError:
+                self.sdo_timeouts += 1
+                raise DeviceFault(self.name, (
+                    f"SDO {verb} 0x{index:04X}:{sub:02X} not answered within "
+                    f"{self.sdo_timeout_s} s (node {self.node_id} absent, or not in "
+                    "PRE-OPERATIONAL/OPERATIONAL)")) from None
+            finally:
+                self._sdo_pending = None
+        if frame.kind == "abort":
+            self.sdo_aborts += 1
+            raise SdoAbort(self.name, index, sub, frame.abort_code, verb)
+        return frame
+
+    # ================================================================== cyclic exchange
+    def _send(self, can_id: int, data: bytes) -> None:
+        bus = self._bus
+        if bus is None:
+            raise DeviceFault(self.name, "not connected")
+        try:
+            bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
+        except (can.CanError, OSError) as exc:
+            self.send_errors += 1
+            if self.send_errors <= _LOG_FIRST or self.send_errors % _LOG_EVERY == 0:
+                log.warning("epos4 send failed", device=self.name, cob_id=hex(can_id),
+                            error=str(exc), count=self.send_errors)
+            raise DeviceFault(self.name, f"CAN send of COB-ID 0x{can_id:03X} failed: "
+                                         f"{exc}") from exc
+
+    def _controlword(self) -> int:
+        """The controlword of the cycle about to be sent. Profile position set-point
+        handshake: bit 4 rises only after a cycle with bit 4 low and with the drive's
+        acknowledge (statusword bit 12) low; it stays high until an answer to a SYNC sent
+        with it acknowledges, then drops."""
+        cw = self._cw
+        if self._mode == Mode.PROFILE_POSITION and cw == CONTROLWORD[Command.ENABLE_OPERATION]:
+            cw |= CW_CHANGE_SET_IMMEDIATELY | CW_RELATIVE
+            # bit 12 means "speed zero" in profile velocity mode: only an acknowledge in
+            # profile position mode holds the next edge back
+            ack = (self.mode_display == Mode.PROFILE_POSITION
+                   and (self.statusword or 0) & SW_SETPOINT_ACK)
+            if self._sp == "request" and not self._last_bit4 and not ack:
+                self._sp = "sent"
+                self._sp_sync = self.syncs_sent + 1          # the SYNC that follows
+            if self._sp == "sent":
+                cw |= CW_NEW_SETPOINT
+        self._last_bit4 = bool(cw & CW_NEW_SETPOINT)
+        return cw
+
+    def _send_cycle(self) -> None:
+        """RxPDO2, RxPDO1, SYNC (one cycle's frames)."""
+        rx1 = _RX1.pack((self._controlword(), self._target_vel, self._mode), "RxPDO1")
+        rx2 = _RX2.pack((self._target_pos, self._profile_vel), "RxPDO2")
+        self._send(self._cob["RPDO2"], rx2)
+        self._send(self._cob["RPDO1"], rx1)
+        self._send(co.COB_BASE["SYNC"], co.encode_sync())
+
+    async def exchange(self, wait: bool = False) -> None:
+        """One cycle: send the RxPDOs and a SYNC. The TxPDO answers arrive in the background
+        (``read()`` returns them); ``wait=True`` returns once this SYNC is answered (or after
+        ``answer_timeout_s``). For a control task that owns the cycle (``connect(sync=False)``).
+        """
+        if not self._started:
+            raise DeviceFault(self.name, "not connected")
+        now = time.monotonic()
+        out = self._outstanding
+        while out and now - out[0] > self.answer_timeout_s:
+            out.popleft()
+            self.lost += 1
+            if self.lost <= _LOG_FIRST or self.lost % _LOG_EVERY == 0:
+                log.warning("epos4 SYNC unanswered", device=self.name, lost=self.lost,
+                            timeout_s=self.answer_timeout_s)
+        self._send_cycle()
+        self.syncs_sent += 1
+        out.append(now)
+        if wait:
+            await self._wait_answered(self.syncs_sent, now + self.answer_timeout_s)
+
+    async def _wait_answered(self, n_syncs: int, deadline: float) -> bool:
+        """Wait until SYNC number ``n_syncs`` is answered (or expired as lost)."""
+        ev = self._rx_event
+        while self._matched + self.lost < n_syncs:
+            left = deadline - time.monotonic()
+            if left <= 0 or ev is None:
+                return False
+            ev.clear()
+            try:
+                await asyncio.wait_for(ev.wait(), left)
+            except TimeoutError:
+                return False
+        return True
+
+    async def _sync_loop(self) -> None:
+        loop = asyncio.get_running_loop()
+        period = self.sync_period_s
+        next_t = loop.time()
+        while True:
+            try:
+                await self.exchange()
+            except DeviceFault:
+                pass                    # counted and logged in _send; read() reports it
+            next_t += period
+            now = loop.time()
+            if now - next_t > period:   # more than a period late: skip, do not burst
+                self.overruns += int((now - next_t) / period)
+                next_t = now
+            await asyncio.sleep(max(0.0, next_t - now))
+
+    def start_sync(self) -> None:
+        """Start the own cyclic task (RxPDOs + SYNC every ``sync_period_s``); no-op if it
+        runs. ``connect(sync=True)`` does this."""
+        if not self._started:
+            raise DeviceFault(self.name, "not connected")
+        if self._sync_task is None or self._sync_task.done():
+            self._sync_task = asyncio.get_running_loop().create_task(
+                self._sync_loop(), name=f"{self.name}-sync")
+
+    async def stop_sync(self) -> None:
+        """Stop the own cyclic task (hand the cycle over to :meth:`exchange`). The drive keeps
+        its last commands; ``read()`` turns stale unless someone exchanges."""
+        task, self._sync_task = self._sync_task, None
+        if task is not None:
+            task.cancel()
+            try:
+                await task
+            except asyncio.CancelledError:
+                pass
+
+    async def _drive_cycles_until(self, pred: Callable[[], bool], deadline: float) -> bool:
+        """Wait for ``pred`` while cycles run (the own task's, or exchanges made here)."""
+        while not pred():
+            if time.monotonic() > deadline:
+                return False
+            if self._sync_task is None or self._sync_task.done():
+                await self.exchange(wait=True)
+                if not pred():
+                    await asyncio.sleep(self.sync_period_s)
+            else:
+                await asyncio.sleep(self.sync_period_s)
+        return True
+
+    async def _cycles(self, n: int, deadline: float) -> bool:
+        target = self.syncs_sent + n
+        return await self._drive_cycles_until(lambda: self._matched + self.lost >= target,
+                                              deadline)
+
+    # ================================================================== reception
+    def _on_message(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            self.errors += 1
+            return
+        if msg.is_remote_frame or msg.is_extended_id:
+            return
+        handler = self._handlers.get(msg.arbitration_id)
+        if handler is None:
+            return
+        data = bytes(msg.data)
+        try:
+            handler(data, time.monotonic())
+        except ProtocolError as exc:
+            self.errors += 1
+            if self.errors <= _LOG_FIRST or self.errors % _LOG_EVERY == 0:
+                log.warning("epos4 bad frame", device=self.name,
+                            cob_id=hex(msg.arbitration_id), data=data.hex(), error=str(exc),
+                            count=self.errors)
+
+    def _on_link_error(self, exc: Exception) -> None:
+        self._link_error = f"{type(exc).__name__}: {exc}"
+        log.error("epos4 CAN reader failed", device=self.name, error=self._link_error)
+
+    def _on_tpdo1(self, data: bytes, now: float) -> None:
+        sw, vel, mode = _TX1.unpack(data, "TxPDO1")
+        state = co.state_from_statusword(sw)
+        if self._tx1 is not None:
+            self.incomplete += 1
+        self._tx1 = (sw, state, vel, mode)
+        self.statusword, self.state, self.mode_display = sw, state, mode
+        # answers come in SYNC order: this one answers SYNC number matched + lost + 1
+        if (self._sp == "sent" and mode == Mode.PROFILE_POSITION and sw & SW_SETPOINT_ACK
+                and self._matched + self.lost + 1 >= self._sp_sync):
+            self._sp = "acked"
+
+    def _on_tpdo2(self, data: bytes, now: float) -> None:
+        pos, current_ma = _TX2.unpack(data, "TxPDO2")
+        tx1, self._tx1 = self._tx1, None
+        if tx1 is None:
+            self.incomplete += 1
+            return
+        sw, state, vel, _mode = tx1
+        if self._pos_raw is not None:
+            self._pos_inc += co.unwrap_i32_delta(pos, self._pos_raw)
+        else:
+            self._pos_inc = pos
+        self._pos_raw = pos
+        self.received += 1
+        if self._outstanding:
+            lat = now - self._outstanding.popleft()
+            self._matched += 1
+            self.latency_last_s = lat
+            self._latency_sum += lat
+            self.latency_max_s = max(self.latency_max_s, lat)
+        else:
+            self.unsolicited += 1
+        g = self.gear_ratio
+        fault = None
+        if self._emcy_fault is not None:
+            fault = self._emcy_fault.describe()
+        elif state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            fault = f"drive in {state.value} (statusword 0x{sw:04X})"
+        self._sample = MotorState(
+            t=now, seq=self.received, velocity_rpm=vel / g,
+            position_deg=self._pos_inc * 360.0 / (self.counts_per_turn * g),
+            current_a=current_ma / 1000.0, enabled=state is State.OPERATION_ENABLED,
+            fault=fault)
+        if self._rx_event is not None:
+            self._rx_event.set()
+
+    def _on_sdo(self, data: bytes, now: float) -> None:
+        frame = co.decode_sdo_response(data)
+        pending = self._sdo_pending
+        if pending is None or (frame.index, frame.sub) != pending[:2]:
+            raise ProtocolError(self.name, f"SDO response for 0x{frame.index:04X}:"
+                                           f"{frame.sub:02X} that nobody asked for")
+        if not pending[2].done():
+            pending[2].set_result(frame)
+
+    def _on_emcy(self, data: bytes, now: float) -> None:
+        emcy = co.decode_emcy(data)
+        self.emcy_count += 1
+        self.last_emcy = emcy
+        if emcy.is_reset:
+            self._emcy_fault = None
+            log.info("epos4 EMCY error reset", device=self.name)
+        else:
+            self._emcy_fault = emcy
+            log.warning("epos4 EMCY", device=self.name, code=f"0x{emcy.code:04X}",
+                        meaning=emcy.meaning, register=f"0x{emcy.register:02X}")
+
+    def _on_heartbeat(self, data: bytes, now: float) -> None:
+        state = co.decode_heartbeat(data)
+        self.heartbeats += 1
+        self._hb_t = now
+        if state is NmtState.BOOT_UP and self._started:
+            self._rebooted = True
+            log.error("epos4 node rebooted", device=self.name, node=self.node_id)
+        self.nmt_state = state
+
+    # ================================================================== health
+    def _fault_message(self) -> str | None:
+        if self._link_error is not None:
+            return f"CAN link down ({self._bus_description()}): {self._link_error}"
+        if self._rebooted:
+            return (f"node {self.node_id} sent a boot-up message: it was reset and lost its "
+                    "PDO configuration; reconnect")
+        if self._emcy_fault is not None:
+            return (f"{self._emcy_fault.describe()}; drive in FAULT: call fault_reset(), "
+                    "then enable()")
+        if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            return (f"drive in {self.state.value} (statusword "
+                    f"{co.describe_statusword(self.statusword or 0)}): call fault_reset()")
+        return None
+
+    def _check_link(self) -> None:
+        if not self._started:
+            raise DeviceFault(self.name, "closed" if self._closed else "not connected")
+        msg = self._fault_message()
+        if msg is not None:
+            raise DeviceFault(self.name, msg)
+
+    async def read(self) -> MotorState:
+        """Newest motor state at the file, without waiting; :class:`DeviceFault` if there is
+        none, it is stale, the heartbeat stopped, or the drive/link is faulted."""
+        self._check_link()
+        s = self._sample
+        if s is None:
+            raise DeviceFault(self.name, "no sample yet: no TxPDO pair has answered a SYNC")
+        now = time.monotonic()
+        age = now - s.t
+        if age > self.stale_after_s:
+            raise DeviceFault(self.name, f"stale: newest TxPDO is {age * 1e3:.1f} ms old "
+                                         f"(limit {self.stale_after_s * 1e3:.0f} ms)")
+        if self.heartbeat_ms:
+            hb_age = now - self._hb_t
+            if hb_age > self.heartbeat_timeout_s:
+                raise DeviceFault(self.name, f"heartbeat lost: none for {hb_age * 1e3:.0f} ms "
+                                             f"(limit {self.heartbeat_timeout_s * 1e3:.0f} ms, "
+                                             f"period {self.heartbeat_ms} ms)")
+        if self.nmt_state is not NmtState.OPERATIONAL:
+            name = self.nmt_state.name if self.nmt_state is not None else "unknown"
+            raise DeviceFault(self.name, f"node {self.node_id} is NMT {name}, not OPERATIONAL")
+        return s
+
+    @property
+    def last(self) -> MotorState | None:
+        """Newest sample whatever the health (None before the first); for diagnostics."""
+        return self._sample
+
+    @property
+    def connected(self) -> bool:
+        return self._started
+
+    @property
+    def latency_mean_s(self) -> float:
+        return self._latency_sum / self._matched if self._matched else 0.0
+
+    def file_torque_mnm(self, current_a: float | None = None, efficiency: float = 1.0) -> float:
+        """File torque (mNm) from a motor current (A; default the newest sample's):
+        ``I * Km * gear * efficiency`` with Km read from 0x3001:05 (thesis eq 5.4-5.5)."""
+        if current_a is None:
+            if self._sample is None:
+                raise DeviceFault(self.name, "no sample yet")
+            current_a = self._sample.current_a
+        return current_a * self.km_mnm_per_a * self.gear_ratio * efficiency
+
+    # ================================================================== CiA 402 commands
+    def _check_enabled(self, what: str) -> None:
+        self._check_link()
+        if self.state is not State.OPERATION_ENABLED:
+            st = self.state.value if self.state is not None else "unknown"
+            raise DeviceFault(self.name, f"{what}: drive not enabled (state {st}); "
+                                         "call enable()")
+
+    async def enable(self, timeout_s: float | None = None) -> None:
+        """CiA 402 enable sequence to OPERATION ENABLED (shutdown -> switch on -> enable
+        operation, from wherever the drive is), each step confirmed by the statusword.
+        :class:`DeviceFault` naming the state if it gets stuck, or if the drive is in FAULT
+        (call :meth:`fault_reset` first)."""
+        if not self._started:
+            raise DeviceFault(self.name, "not connected")
+        timeout = self.state_timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + timeout
+        while self.state is not State.OPERATION_ENABLED:
+            st = self.state
+            if st in (State.FAULT, State.FAULT_REACTION_ACTIVE) or self._emcy_fault:
+                raise DeviceFault(self.name, f"enable: {self._fault_message()}")
+            step = ENABLE_STEP.get(st) if st is not None else None
+            if step is not None:
+                self._cw = CONTROLWORD[step]
+            if not await self._drive_cycles_until(lambda st=st: self.state is not st,
+                                                  deadline):
+                sent = f"0x{self._cw:04X} ({step.value})" if step else "nothing (waiting)"
+                raise DeviceFault(self.name, (
+                    f"enable: stuck in {st.name if st else 'unknown'} (statusword "
+                    f"{co.describe_statusword(self.statusword or 0)}) for {timeout} s; "
+                    f"controlword sent {sent}"))
+        self._cw = CONTROLWORD[Command.ENABLE_OPERATION]
+        log.info("epos4 operation enabled", device=self.name)
+
+    async def fault_reset(self, timeout_s: float | None = None) -> None:
+        """Clear a FAULT: controlword bit 7 low for a cycle, then high (rising edge); wait for
+        SWITCH ON DISABLED. The drive stays disabled: call :meth:`enable` afterwards. No-op
+        when there is no fault."""
+        if not self._started:
+            raise DeviceFault(self.name, "not connected")
+        if self.state not in (State.FAULT, State.FAULT_REACTION_ACTIVE) \
+                and self._emcy_fault is None:
+            return
+        timeout = self.state_timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + timeout
+        self._mode, self._target_vel, self._sp = int(Mode.PROFILE_VELOCITY), 0, "idle"
+        self._cw = CONTROLWORD[Command.DISABLE_VOLTAGE]            # bit 7 low first
+        await self._cycles(2, deadline)
+        self._cw = CONTROLWORD[Command.FAULT_RESET]
+        ok = await self._drive_cycles_until(
+            lambda: self.state not in (State.FAULT, State.FAULT_REACTION_ACTIVE), deadline)
+        self._cw = CONTROLWORD[Command.DISABLE_VOLTAGE]
+        if not ok:
+            raise DeviceFault(self.name, (
+                f"fault reset: still in FAULT after {timeout} s (statusword "
+                f"{co.describe_statusword(self.statusword or 0)}; last "
+                f"{self.last_emcy.describe() if self.last_emcy else 'EMCY: none'})"))
+        self._emcy_fault = None
+        log.info("epos4 fault reset", device=self.name)
+
+    async def set_velocity(self, rpm: float) -> None:
+        """Turn the file at ``rpm`` (profile velocity mode; motor target = rpm * gear)."""
+        rpm = float(rpm)
+        if not (math.isfinite(rpm) and abs(rpm) <= self.max_file_rpm):
+            raise ConfigError("epos4.velocity_rpm", rpm,
+                              f"|rpm| <= {self.max_file_rpm} at the file")
+        self._check_enabled("set_velocity")
+        self._target_vel = round(rpm * self.gear_ratio)
+        self._mode = int(Mode.PROFILE_VELOCITY)
+        self._sp = "idle"
+
+    async def move_relative(self, deg: float, rpm: float | None = None) -> None:
+        """Turn the file by ``deg`` at ``rpm`` (default ``move_rpm``), then hold (profile
+        position mode, relative). Returns at once; see :meth:`wait_move_done`."""
+        deg = float(deg)
+        rpm = self.move_rpm if rpm is None else float(rpm)
+        if not (math.isfinite(rpm) and 0 < rpm <= self.max_file_rpm):
+            raise ConfigError("epos4.move_rpm", rpm, f"0 < rpm <= {self.max_file_rpm}")
+        inc = round(deg * self.gear_ratio * self.counts_per_turn / 360.0) \
+            if math.isfinite(deg) else None
+        if inc is None or not _I32_MIN <= inc <= _I32_MAX:
+            raise ConfigError("epos4.move_deg", deg, "a finite angle within the INTEGER32 "
+                                                     "target position range")
+        self._check_enabled("move_relative")
+        self._target_pos = inc
+        self._profile_vel = round(rpm * self.gear_ratio)
+        self._mode = int(Mode.PROFILE_POSITION)
+        self._sp = "request"
+
+    @property
+    def move_done(self) -> bool:
+        """The last ``move_relative`` was acknowledged and its target reached."""
+        return (self._mode == Mode.PROFILE_POSITION and self._sp == "acked"
+                and self.mode_display == Mode.PROFILE_POSITION
+                and bool((self.statusword or 0) & SW_TARGET_REACHED))
+
+    async def wait_move_done(self, timeout_s: float = 5.0) -> None:
+        """Wait for the end of the move; :class:`DeviceFault` on fault or timeout."""
+        deadline = time.monotonic() + timeout_s
+        ok = await self._drive_cycles_until(
+            lambda: self.move_done or self._fault_message() is not None, deadline)
+        self._check_link()
+        if not ok:
+            raise DeviceFault(self.name, f"move not finished within {timeout_s} s (statusword "
+                                         f"{co.describe_statusword(self.statusword or 0)})")
+
+    async def stop(self) -> None:
+        """Stop turning: profile velocity mode with target 0 rpm. The drive ramps down and
+        stays enabled, holding zero speed. Never raises for a disabled or faulted drive."""
+        self._target_vel = 0
+        self._mode = int(Mode.PROFILE_VELOCITY)
+        self._sp = "idle"
+
+    async def quick_stop(self) -> None:
+        """CiA 402 quick stop (controlword 0x02): the drive stops on its quick-stop ramp and
+        goes to QUICK STOP ACTIVE; :meth:`enable` brings it back."""
+        self._target_vel = 0
+        self._sp = "idle"
+        self._cw = CONTROLWORD[Command.QUICK_STOP]
+
+    async def nmt(self, command: NmtCommand) -> None:
+        """Send an NMT command to the drive (diagnostics; the start-up does what is needed)."""
+        self._send(co.COB_BASE["NMT"], co.encode_nmt(command, self.node_id))
+
+
+__all__ = ["DEFAULT_COUNTS_PER_TURN", "Epos4Driver", "SdoAbort"]

@@ -1,0 +1,764 @@
+"""A simulated Maxon EPOS4 CANopen node on a python-can bus, over a World's handpiece.
+
+:class:`Epos4Node` is a CANopen slave (CiA 301 + CiA 402) that exposes
+``world.handpiece`` over the real protocol, so that :class:`dentibot.io.epos4.Epos4Driver` (or
+any CANopen master) can drive it on python-can's ``virtual`` bus, or through
+:class:`dentibot.sim.socketcand.SocketcandServer` from another process.
+
+What it does (all framing from :mod:`dentibot.io.canopen_protocol`):
+
+- NMT: boot-up message (heartbeat byte 0x00) at ``start()`` and after a reset, then
+  PRE-OPERATIONAL; START / STOP / ENTER PRE-OPERATIONAL / RESET NODE / RESET COMMUNICATION.
+  SDOs are served in PRE-OPERATIONAL and OPERATIONAL; PDOs (and SYNC answers) only in
+  OPERATIONAL; EMCY in PRE-OPERATIONAL and OPERATIONAL. Leaving OPERATIONAL while the drive is
+  enabled applies the abort connection option code 0x6007 (default 3: quick stop).
+- Heartbeat producer: every 0x1017 ms (constructor ``heartbeat_period_s``; 0 = off).
+- Expedited SDO server over an object dictionary built from
+  :data:`~dentibot.io.canopen_protocol.OBJECTS` (aborts: no object 0x06020000, no sub
+  0x06090011, read-only 0x06010002, length 0x06070010, bad value 0x06090030, segmented
+  requests 0x05040001, PDO parameters while OPERATIONAL 0x08000022, mapping entries while
+  sub 0 != 0 or the PDO is valid 0x06010000, unmappable 0x06040041, > 64 bits 0x06040042).
+- PDOs per the configured mapping (0x1400/0x1600, 0x1800/0x1A00 ...): the node's *default*
+  mapping differs from the project's, so a master has to configure it. TxPDOs with
+  transmission type 0..240 are sent on every n-th SYNC with values read from the World at
+  that moment; RxPDOs of type 0..240 take effect at the next SYNC, 254/255 at reception.
+  RxPDOs of the wrong length: not processed, EMCY 0x8210 (CAN PDO length error) and FAULT
+  (assumption: the EPOS4 treats its listed errors as device errors).
+- CiA 402 state machine driven by the controlword exactly per
+  :func:`~dentibot.io.canopen_protocol.apply_controlword` (illegal transitions ignored);
+  profile velocity (3) -> ``handpiece.set_velocity(target / gear)``, profile position (1) ->
+  ``handpiece.move_relative`` on the rising edge of controlword bit 4 (bit 6 relative, else
+  absolute), set-point acknowledge in statusword bit 12 until bit 4 drops, target reached
+  bit 10; halt (bit 8) stops. Only in OPERATION ENABLED; leaving it stops the handpiece
+  (the world model has no coasting).
+- Faults: EMCY + FAULT when the world's file fractures (code :data:`FRACTURE_EMCY_CODE`),
+  on :meth:`Epos4Node.inject_emcy`, or when the STO (world.estop) drops while the power stage
+  is on (0x8A88 STO error; assumption). With STO active the drive refuses to switch on and
+  stays in READY TO SWITCH ON (assumption). Fault reset (15) sends EMCY 0x0000.
+
+Scaling: velocity (rpm, motor side) = ``omega_rpm * gear``; position (inc) = ``pos_deg * gear
+* counts_per_turn / 360`` wrapped into INTEGER32; current 0x30D1:01 (mA) = ``current_a *
+1000``; torque actual 0x6077 (per mille of 0x6076) from the current and the torque constant.
+
+Threading: python-can's Notifier hands frames to the event loop (``loop=``), so the World is
+only touched from the loop's thread, like :class:`~dentibot.sim.timing.RealTimeStepper`. The
+node never steps the World. The bus is the caller's: ``close()`` does not shut it down.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from fractions import Fraction
+from typing import Self
+
+import can
+import structlog
+
+from dentibot.errors import ConfigError, ProtocolError
+from dentibot.io import canopen_protocol as co
+from dentibot.io.canopen_protocol import (
+    CW_HALT,
+    CW_NEW_SETPOINT,
+    CW_RELATIVE,
+    PDO_COB_INVALID,
+    SW_INTERNAL_LIMIT,
+    SW_REMOTE,
+    SW_SETPOINT_ACK,
+    SW_SPEED_ZERO,
+    SW_TARGET_REACHED,
+    SW_VOLTAGE_ENABLED,
+    Mode,
+    NmtCommand,
+    NmtState,
+    PdoLayout,
+    State,
+)
+from dentibot.sim.world import World
+
+log = structlog.get_logger(__name__)
+
+#: EMCY code the node sends when the World's file fractures. A drive cannot see a fracture;
+#: what it sees is the jam just before it, reported here as a following error (assumption,
+#: a stand-in so that the driver's fault path can be exercised).
+FRACTURE_EMCY_CODE = 0x8611
+#: EMCY code when the safe torque off drops while the power stage is on (assumption).
+STO_EMCY_CODE = 0x8A88
+#: EMCY code of an RxPDO with the wrong length (CiA 301 "PDO not processed due to length").
+PDO_LENGTH_EMCY_CODE = 0x8210
+#: Device type 0x1000: profile 402 in the low word; the high word (0x0002, servo drive) is an
+#: assumption.
+DEVICE_TYPE = 0x0002_0192
+#: maxon motor ag's CiA vendor id (unconfirmed).
+VENDOR_ID = 0x0000_00FB
+#: Velocity window for "target reached" in profile velocity mode, and the "speed zero"
+#: threshold, both in motor rpm (assumptions; the EPOS4 has its own parameters).
+VELOCITY_WINDOW_RPM = 20
+SPEED_ZERO_RPM = 10
+#: States in which the power stage is on (statusword bit 4, voltage enabled).
+_POWERED = frozenset({State.READY_TO_SWITCH_ON, State.SWITCHED_ON, State.OPERATION_ENABLED,
+                      State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE})
+_SUPPORTED_MODES = frozenset({Mode.PROFILE_POSITION, Mode.PROFILE_VELOCITY})
+#: Objects whose writing (SDO or RxPDO) feeds the drive logic.
+_DRIVE_OBJECTS = frozenset({"controlword", "modes_of_operation", "target_velocity",
+                            "target_position", "profile_velocity"})
+#: Abort connection option code (0x6007) -> what happens to an enabled drive when the node
+#: leaves OPERATIONAL (CiA 402): None nothing, "fault", or a command.
+_ABORT_CONNECTION: dict[int, str | None] = {0: None, 1: "fault", 2: "disable voltage",
+                                            3: "quick stop"}
+
+
+class _Abort(Exception):
+    def __init__(self, code: int) -> None:
+        self.code = code
+        super().__init__(f"SDO abort 0x{code:08X} ({co.sdo_abort_meaning(code)})")
+
+
+class Epos4Node:
+    """A simulated EPOS4 (CANopen node ``node_id``) on ``bus`` over ``world.handpiece``.
+
+    Args:
+        world: the World whose handpiece the drive turns (never stepped here).
+        bus: a python-can bus (e.g. ``virtual`` channel); owned by the caller.
+        node_id: CANopen node id 1..127.
+        heartbeat_period_s: default producer heartbeat time 0x1017 (s; 0 = off). 0.1 s.
+        encoder_counts_per_turn: main sensor resolution 0x3000:05 (increments per motor turn).
+            2048 = a 512-pulse quadrature encoder (assumption for the handpiece motor).
+        name: device name in logs.
+    """
+
+    def __init__(self, world: World, bus: can.BusABC, node_id: int = 1, *,
+                 heartbeat_period_s: float = 0.1, encoder_counts_per_turn: int = 2048,
+                 name: str = "epos4-sim") -> None:
+        self.node_id = co.check_node_id(node_id)
+        if not (math.isfinite(heartbeat_period_s) and 0 <= heartbeat_period_s <= 65.535):
+            raise ConfigError("epos4_node.heartbeat_period_s", heartbeat_period_s,
+                              "0 (off) .. 65.535 s")
+        if not (isinstance(encoder_counts_per_turn, int) and encoder_counts_per_turn > 0):
+            raise ConfigError("epos4_node.encoder_counts_per_turn", encoder_counts_per_turn,
+                              "a positive integer (increments per motor turn)")
+        self.world = world
+        self.bus = bus
+        self.name = name
+        self.heartbeat_period_s = float(heartbeat_period_s)
+        self.counts_per_turn = encoder_counts_per_turn
+        hp = world.handpiece.p
+        self.gear_ratio = float(hp.gear_ratio)
+        self._inc_per_file_deg = self.gear_ratio * self.counts_per_turn / 360.0
+        #: set True to make the node deaf and mute (a cut cable): no answers, no heartbeat.
+        self.muted = False
+        # counters
+        self.syncs_received = 0
+        self.syncs_answered = 0      # SYNCs at which at least one TxPDO was sent
+        self.tpdos_sent = 0
+        self.rpdos_received = 0
+        self.sdo_requests = 0
+        self.sdo_aborts = 0
+        self.nmt_commands = 0
+        self.emcy_sent = 0
+        self.heartbeats_sent = 0
+        self.errors = 0              # frames that broke the protocol (counted, not processed)
+        self.pdo_length_errors = 0
+        self.send_errors = 0
+        self.ignored_modes = 0
+        self.setpoints_accepted = 0  # profile position set-points taken (bit 4 edges)
+        self.transitions: list[str] = []    # CiA 402 transition numbers taken, in order
+        # state
+        self.nmt_state = NmtState.BOOT_UP
+        self.state = State.SWITCH_ON_DISABLED
+        self._od: dict[tuple[int, int], int] = {}
+        self._rx_layouts: dict[int, PdoLayout | None] = {}
+        self._tx_layouts: dict[int, PdoLayout | None] = {}
+        self._rx_cobs: dict[int, int] = {}
+        self._pending_rpdo: dict[int, tuple[int, ...]] = {}
+        self._sync_count = 0
+        self._mode_display = 0
+        self._sp_ack = False
+        self._internal_limit = False
+        self._error_code = 0
+        self._error_register = 0
+        self._fracture_reported = False
+        self._notifier: can.Notifier | None = None
+        self._hb_task: asyncio.Task | None = None
+        self._started = False
+        self._closed = False
+        self._reset_application()
+        self._reset_communication()
+        self._getters = {
+            "statusword": self._statusword,
+            "velocity_actual": self._velocity_actual,
+            "position_actual": self._position_actual,
+            "current_actual_averaged": self._current_ma,
+            "current_actual": self._current_ma,
+            "torque_actual": self._torque_actual,
+            "modes_of_operation_display": lambda: self._mode_display,
+            "error_code": lambda: self._error_code,
+            "error_register": lambda: self._error_register,
+            "sto_inputs": lambda: 0x00 if self.world.estop else 0x03,
+        }
+
+    # ------------------------------------------------------------------ lifecycle
+    async def start(self) -> None:
+        """Attach to the bus (python-can Notifier in this event loop), send the boot-up
+        message, enter PRE-OPERATIONAL and start the heartbeat producer."""
+        if self._started:
+            return
+        if self._closed:
+            raise ConfigError("epos4_node", "closed", "a node that has not been closed")
+        loop = asyncio.get_running_loop()
+        self._notifier = can.Notifier(self.bus, [self._on_message], timeout=0.05, loop=loop)
+        self._started = True
+        self._boot()
+        self._hb_task = loop.create_task(self._heartbeat_loop(), name=f"{self.name}-heartbeat")
+
+    async def close(self) -> None:
+        """Stop the heartbeat and detach from the bus (idempotent; the bus stays open)."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._hb_task is not None:
+            self._hb_task.cancel()
+            try:
+                await self._hb_task
+            except asyncio.CancelledError:
+                pass
+            self._hb_task = None
+        if self._notifier is not None:
+            self._notifier.stop(timeout=1.0)
+            self._notifier = None
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.close()
+
+    # ------------------------------------------------------------------ public helpers
+    def inject_emcy(self, code: int, register: int | None = None,
+                    manufacturer: bytes = bytes(5)) -> None:
+        """Raise a device error: EMCY ``code`` (register from the code's class unless given)
+        and the drive goes to FAULT (through fault reaction active), stopping the motor."""
+        if not 0 < code <= 0xFFFF:
+            raise ConfigError("epos4_node.emcy_code", code, "1..0xFFFF (0 means no error)")
+        self._fault(code, register, manufacturer)
+
+    def value(self, name: str) -> int:
+        """Current value of object ``name`` as an SDO upload would return it."""
+        return self._read(co.obj(name))
+
+    @property
+    def rx_layouts(self) -> dict[int, PdoLayout | None]:
+        """Configured RxPDO layouts by PDO number (None: no entries mapped)."""
+        return dict(self._rx_layouts)
+
+    @property
+    def tx_layouts(self) -> dict[int, PdoLayout | None]:
+        return dict(self._tx_layouts)
+
+    @property
+    def error_code(self) -> int:
+        return self._error_code
+
+    # ------------------------------------------------------------------ object dictionary
+    def _reset_application(self) -> None:
+        """Power-on values of the application objects (0x2000-0x9FFF); drive disabled."""
+        hp = self.world.handpiece
+        p = hp.p
+        gear = Fraction(self.gear_ratio).limit_denominator(1000)
+        nominal_ma = round(p.current_limit_a * 1000)   # assumption: nominal = limit current
+        km_unm = round(p.km_mnm_per_a * 1000)
+        for name, value in {
+            "axis_main_sensor_resolution": self.counts_per_turn,
+            "motor_nominal_current": nominal_ma,
+            "motor_output_current_limit": nominal_ma,
+            "motor_torque_constant": km_unm,
+            "gear_reduction_numerator": gear.numerator,
+            "gear_reduction_denominator": gear.denominator,
+            "controlword": 0,
+            "abort_connection_option_code": 3,
+            "quick_stop_option_code": 6,
+            "modes_of_operation": 0,
+            "target_torque": 0,
+            "motor_rated_torque": round(km_unm * nominal_ma / 1000),
+            "target_position": 0,
+            "profile_velocity": round(p.move_rpm * self.gear_ratio),
+            "profile_acceleration": 10000,
+            "profile_deceleration": 10000,
+            "quick_stop_deceleration": 10000,
+            "target_velocity": 0,
+        }.items():
+            self._od[co.obj(name).address] = value
+        self._mode_display = 0
+        self._sp_ack = False
+        self._internal_limit = False
+        self._error_code = self._error_register = 0
+        if self.state is not State.SWITCH_ON_DISABLED:
+            self._set_state(State.SWITCH_ON_DISABLED, "reset")
+        hp.stop()
+        hp.enabled = False
+
+    def _reset_communication(self) -> None:
+        """Power-on values of the communication objects (0x1000-0x1FFF). The default PDO
+        mapping is deliberately not the project's: RxPDO1 = controlword, RxPDO2 = controlword
+        + mode, TxPDO1 = statusword, TxPDO2 = statusword + mode display; PDO 3 and 4 off."""
+        nid = self.node_id
+        od = self._od
+        for name, value in {
+            "device_type": DEVICE_TYPE,
+            "producer_heartbeat_time": round(self.heartbeat_period_s * 1000),
+            "vendor_id": VENDOR_ID,
+            "product_code": 0,
+        }.items():
+            od[co.obj(name).address] = value
+        defaults = {
+            ("rx", 1): ("controlword",),
+            ("rx", 2): ("controlword", "modes_of_operation"),
+            ("tx", 1): ("statusword",),
+            ("tx", 2): ("statusword", "modes_of_operation_display"),
+        }
+        for direction, comm0 in (("rx", 0x1400), ("tx", 0x1800)):
+            for n in range(1, 5):
+                comm, mapping = comm0 + n - 1, comm0 + 0x200 + n - 1
+                fn = f"{'RPDO' if direction == 'rx' else 'TPDO'}{n}"
+                names = defaults.get((direction, n), ())
+                cob = co.cob_id(fn, nid) | (0 if names else PDO_COB_INVALID)
+                if direction == "tx":
+                    cob |= co.PDO_COB_NO_RTR
+                od[(comm, 1)] = cob
+                od[(comm, 2)] = 1 if direction == "tx" else 255
+                if direction == "tx":
+                    od[(comm, 3)] = 0
+                    od[(comm, 5)] = 0
+                for s in range(1, 9):
+                    od[(mapping, s)] = 0
+                for s, nm in enumerate(names, 1):
+                    od[(mapping, s)] = co.obj(nm).mapping_word
+                od[(mapping, 0)] = len(names)
+        for direction in ("rx", "tx"):
+            for n in range(1, 5):
+                self._rebuild_layout(direction, n)
+        self._pending_rpdo.clear()
+        self._sync_count = 0
+
+    def _rebuild_layout(self, direction: str, n: int) -> None:
+        comm = (0x1400 if direction == "rx" else 0x1800) + n - 1
+        mapping = comm + 0x200
+        count = self._od[(mapping, 0)]
+        words = [self._od[(mapping, s)] for s in range(1, count + 1)]
+        layout = PdoLayout.from_words(words, direction) if words else None
+        if direction == "rx":
+            self._rx_layouts[n] = layout
+            self._rx_cobs = {
+                self._od[(0x1400 + k - 1, 1)] & 0x7FF: k for k in range(1, 5)
+                if not self._od[(0x1400 + k - 1, 1)] & PDO_COB_INVALID
+            }
+        else:
+            self._tx_layouts[n] = layout
+
+    def _read(self, o: co.OdObject) -> int:
+        getter = self._getters.get(o.name)
+        if getter is not None:
+            return int(getter())
+        return self._od[o.address]
+
+    # ------------------------------------------------------------------ World -> objects
+    def _velocity_actual(self) -> int:
+        return round(self.world.handpiece.omega_rpm * self.gear_ratio)
+
+    def _position_actual(self) -> int:
+        return co.wrap_i32(round(self.world.handpiece.pos_deg * self._inc_per_file_deg))
+
+    def _current_ma(self) -> int:
+        return round(self.world.handpiece.current_a * 1000.0)
+
+    def _torque_actual(self) -> int:
+        rated_unm = self._od[co.obj("motor_rated_torque").address] or 1
+        km_unm = self._od[co.obj("motor_torque_constant").address]
+        per_mille = self.world.handpiece.current_a * km_unm / rated_unm * 1000.0
+        return max(-32768, min(32767, round(per_mille)))
+
+    def _statusword(self) -> int:
+        st = self.state
+        sw = co.STATE_STATUSWORD[st] | SW_REMOTE
+        if st in _POWERED:
+            sw |= SW_VOLTAGE_ENABLED
+        if self._internal_limit:
+            sw |= SW_INTERNAL_LIMIT
+        if st is State.OPERATION_ENABLED:
+            hp = self.world.handpiece
+            if self._mode_display == Mode.PROFILE_POSITION:
+                if self._sp_ack:
+                    sw |= SW_SETPOINT_ACK
+                if hp.mode == "pos" and hp.move_done:
+                    sw |= SW_TARGET_REACHED
+            elif self._mode_display == Mode.PROFILE_VELOCITY:
+                g = self.gear_ratio
+                if abs(hp.omega_rpm - hp.cmd_rpm) * g <= VELOCITY_WINDOW_RPM:
+                    sw |= SW_TARGET_REACHED
+                if abs(hp.omega_rpm) * g <= SPEED_ZERO_RPM:
+                    sw |= SW_SPEED_ZERO
+        return sw
+
+    # ------------------------------------------------------------------ bus I/O
+    def _send(self, can_id: int, data: bytes) -> None:
+        try:
+            self.bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
+        except (can.CanError, OSError) as exc:
+            self.send_errors += 1
+            log.warning("epos4 sim send failed", node=self.node_id, cob_id=hex(can_id),
+                        error=str(exc))
+
+    def _on_message(self, msg: can.Message) -> None:
+        if self._closed or msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+            return
+        if self.muted:
+            return
+        cid = msg.arbitration_id
+        data = bytes(msg.data)
+        try:
+            if cid == co.COB_BASE["NMT"]:
+                self._on_nmt(data)
+            elif cid == co.COB_BASE["SYNC"]:
+                self._on_sync(data)
+            elif cid == co.COB_BASE["SDO_RX"] + self.node_id:
+                self._on_sdo(data)
+            elif cid in self._rx_cobs:
+                self._on_rpdo(self._rx_cobs[cid], data)
+        except ProtocolError as exc:
+            self.errors += 1
+            log.warning("epos4 sim bad frame", node=self.node_id, cob_id=hex(cid),
+                        data=data.hex(), error=str(exc))
+
+    # ------------------------------------------------------------------ NMT, heartbeat
+    def _boot(self) -> None:
+        self.nmt_state = NmtState.BOOT_UP
+        self._send(co.cob_id("HEARTBEAT", self.node_id), co.encode_heartbeat(NmtState.BOOT_UP))
+        self.nmt_state = NmtState.PRE_OPERATIONAL
+        log.info("epos4 sim boot-up", node=self.node_id)
+
+    def _on_nmt(self, data: bytes) -> None:
+        cmd, node = co.decode_nmt(data)
+        if node not in (0, self.node_id):
+            return
+        self.nmt_commands += 1
+        if cmd is NmtCommand.START:
+            self.nmt_state = NmtState.OPERATIONAL
+        elif cmd is NmtCommand.STOP:
+            self._leave_operational()
+            self.nmt_state = NmtState.STOPPED
+        elif cmd is NmtCommand.ENTER_PRE_OPERATIONAL:
+            self._leave_operational()
+            self.nmt_state = NmtState.PRE_OPERATIONAL
+        elif cmd is NmtCommand.RESET_NODE:
+            self._reset_application()
+            self._reset_communication()
+            self._boot()
+        elif cmd is NmtCommand.RESET_COMMUNICATION:
+            self._leave_operational()
+            self._reset_communication()
+            self._boot()
+
+    def _leave_operational(self) -> None:
+        """Abort connection option code 0x6007 applied to an enabled drive."""
+        if self.nmt_state is not NmtState.OPERATIONAL:
+            return
+        if self.state not in (State.OPERATION_ENABLED, State.SWITCHED_ON):
+            return
+        action = _ABORT_CONNECTION.get(self._od[co.obj("abort_connection_option_code").address])
+        if action == "fault":
+            self._fault(0x8130)
+        elif action == "disable voltage":
+            self._set_state(State.SWITCH_ON_DISABLED, "9 (abort connection)")
+        elif action == "quick stop":
+            if self.state is State.OPERATION_ENABLED:
+                self._set_state(State.QUICK_STOP_ACTIVE, "11 (abort connection)")
+            else:
+                self._set_state(State.SWITCH_ON_DISABLED, "10 (abort connection)")
+
+    async def _heartbeat_loop(self) -> None:
+        while True:
+            period = self._od[co.obj("producer_heartbeat_time").address] / 1000.0
+            if period <= 0:
+                await asyncio.sleep(0.05)
+                continue
+            await asyncio.sleep(period)
+            self._poll_world()
+            if not self.muted and self.nmt_state is not NmtState.BOOT_UP:
+                self._send(co.cob_id("HEARTBEAT", self.node_id),
+                           co.encode_heartbeat(self.nmt_state))
+                self.heartbeats_sent += 1
+
+    # ------------------------------------------------------------------ SDO server
+    def _on_sdo(self, data: bytes) -> None:
+        if self.nmt_state not in (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL):
+            return
+        req = co.decode_sdo_request(data)
+        self.sdo_requests += 1
+        if req.kind == "abort":
+            return
+        try:
+            if req.kind == "upload":
+                o = self._lookup(req.index, req.sub)
+                if o.access == "wo":
+                    raise _Abort(0x0601_0001)
+                reply = co.encode_sdo_upload_ack(req.index, req.sub,
+                                                 o.dtype.encode(self._read(o), o.name))
+            elif req.kind == "download":
+                if not req.expedited:
+                    raise _Abort(0x0504_0001)
+                o = self._lookup(req.index, req.sub)
+                if o.access in ("ro", "const"):
+                    raise _Abort(0x0601_0002)
+                payload = req.payload
+                if req.size is None:              # size not indicated: 4 bytes sent
+                    payload = payload[:o.dtype.size]
+                if len(payload) != o.dtype.size:
+                    raise _Abort(0x0607_0010)
+                self._write_sdo(o, o.dtype.decode(payload, o.name))
+                reply = co.encode_sdo_download_ack(req.index, req.sub)
+            else:
+                raise _Abort(0x0504_0001)
+        except _Abort as ab:
+            self.sdo_aborts += 1
+            log.info("epos4 sim SDO abort", node=self.node_id, index=hex(req.index),
+                     sub=req.sub, code=hex(ab.code), meaning=co.sdo_abort_meaning(ab.code))
+            reply = co.encode_sdo_abort(req.index, req.sub, ab.code)
+        self._send(co.cob_id("SDO_TX", self.node_id), reply)
+
+    def _lookup(self, index: int, sub: int) -> co.OdObject:
+        o = co.OBJECTS_BY_ADDRESS.get((index, sub))
+        if o is not None and (o.name in self._getters or o.address in self._od):
+            return o
+        if any(i == index for i, _ in self._od) or any(
+                co.obj(n).index == index for n in self._getters):
+            raise _Abort(0x0609_0011)
+        raise _Abort(0x0602_0000)
+
+    def _write_sdo(self, o: co.OdObject, value: int) -> None:
+        if 0x1400 <= o.index <= 0x1BFF:
+            self._write_pdo_parameter(o, value)
+            return
+        prev_cw = self._od[co.obj("controlword").address]
+        self._od[o.address] = value
+        if o.name in _DRIVE_OBJECTS:
+            self._drive_update(prev_cw)
+
+    def _write_pdo_parameter(self, o: co.OdObject, value: int) -> None:
+        if self.nmt_state is NmtState.OPERATIONAL:
+            raise _Abort(0x0800_0022)   # configure PDOs in PRE-OPERATIONAL (EPOS4)
+        index, sub = o.address
+        is_map = index in range(0x1600, 0x1604) or index in range(0x1A00, 0x1A04)
+        direction = "rx" if index < 0x1800 else "tx"
+        comm = index - 0x200 if is_map else index
+        n = comm - (0x1400 if direction == "rx" else 0x1800) + 1
+        valid = not self._od[(comm, 1)] & PDO_COB_INVALID
+        if not is_map:
+            if sub == 1:
+                old = self._od[(comm, 1)]
+                if valid and not value & PDO_COB_INVALID and (value & 0x7FF) != (old & 0x7FF):
+                    raise _Abort(0x0609_0030)   # change the COB-ID only while invalid
+                if value & 0x7FF == 0:
+                    raise _Abort(0x0609_0030)
+            elif sub == 2 and not (value <= 240 or value in (254, 255)):
+                raise _Abort(0x0609_0030)
+            self._od[o.address] = value
+            self._rebuild_layout(direction, n)
+            return
+        if valid:
+            raise _Abort(0x0601_0000)           # mapping only while the PDO is not valid
+        if sub == 0:
+            if value > 8:
+                raise _Abort(0x0609_0031)
+            words = [self._od[(index, s)] for s in range(1, value + 1)]
+            try:
+                PdoLayout.from_words(words, direction)
+            except ConfigError as exc:
+                raise _Abort(0x0604_0042 if "64 bits" in str(exc) else 0x0604_0041) from None
+            self._od[o.address] = value
+            self._rebuild_layout(direction, n)
+            return
+        if self._od[(index, 0)] != 0:
+            raise _Abort(0x0601_0000)           # set sub 0 to 0 before changing entries
+        try:
+            PdoLayout.from_words([value], direction)
+        except ConfigError:
+            raise _Abort(0x0604_0041) from None
+        self._od[o.address] = value
+
+    # ------------------------------------------------------------------ PDO, SYNC
+    def _on_rpdo(self, n: int, data: bytes) -> None:
+        if self.nmt_state is not NmtState.OPERATIONAL:
+            return
+        layout = self._rx_layouts.get(n)
+        if layout is None:
+            return
+        self.rpdos_received += 1
+        if len(data) != layout.size:
+            self.pdo_length_errors += 1
+            self.errors += 1
+            log.warning("epos4 sim RxPDO length error", node=self.node_id, pdo=n,
+                        got=len(data), expected=layout.size)
+            self._fault(PDO_LENGTH_EMCY_CODE)
+            return
+        values = layout.unpack(data, f"RxPDO{n}")
+        if self._od[(0x1400 + n - 1, 2)] <= 240:
+            self._pending_rpdo[n] = values      # synchronous: acts at the next SYNC
+        else:
+            self._apply_rpdo(layout, values)
+
+    def _apply_rpdo(self, layout: PdoLayout, values: tuple[int, ...]) -> None:
+        prev_cw = self._od[co.obj("controlword").address]
+        for o, v in zip(layout.objects, values, strict=True):
+            self._od[o.address] = v
+        self._drive_update(prev_cw)
+
+    def _on_sync(self, data: bytes) -> None:
+        co.decode_sync(data)
+        self.syncs_received += 1
+        if self.nmt_state is not NmtState.OPERATIONAL:
+            return
+        self._poll_world()
+        if self._pending_rpdo:
+            pending, self._pending_rpdo = self._pending_rpdo, {}
+            for n, values in sorted(pending.items()):
+                layout = self._rx_layouts.get(n)
+                if layout is not None and len(layout.objects) == len(values):
+                    self._apply_rpdo(layout, values)
+        self._sync_count += 1
+        sent = False
+        for n in range(1, 5):
+            layout = self._tx_layouts.get(n)
+            comm = 0x1800 + n - 1
+            cob = self._od[(comm, 1)]
+            ttype = self._od[(comm, 2)]
+            if layout is None or cob & PDO_COB_INVALID or ttype > 240:
+                continue
+            if self._sync_count % max(ttype, 1):
+                continue
+            values = [self._read(o) for o in layout.objects]
+            self._send(cob & 0x7FF, layout.pack(values, f"TxPDO{n}"))
+            self.tpdos_sent += 1
+            sent = True
+        if sent:
+            self.syncs_answered += 1
+
+    # ------------------------------------------------------------------ CiA 402 drive
+    def _set_state(self, new: State, transition: str | None) -> None:
+        old = self.state
+        if new is old:
+            return
+        self.state = new
+        if transition:
+            self.transitions.append(transition)
+        hp = self.world.handpiece
+        if old is State.OPERATION_ENABLED:
+            hp.stop()
+            hp.enabled = False
+            self._sp_ack = False
+        if new is State.OPERATION_ENABLED:
+            hp.enabled = True
+            self._enter_mode()
+        log.debug("epos4 sim state", node=self.node_id, old=old.value, new=new.value,
+                  transition=transition)
+
+    def _drive_update(self, prev_cw: int) -> None:
+        od = self._od
+        cw = od[co.obj("controlword").address]
+        self._poll_world()
+        mode = od[co.obj("modes_of_operation").address]
+        mode_changed = mode != self._mode_display
+        if mode_changed:
+            if mode in _SUPPORTED_MODES:
+                self._mode_display = mode
+            else:
+                self.ignored_modes += 1
+                mode_changed = False
+        new, tr = co.apply_controlword(self.state, cw, prev_cw)
+        if self.world.estop and new in (State.SWITCHED_ON, State.OPERATION_ENABLED) \
+                and self.state not in (State.SWITCHED_ON, State.OPERATION_ENABLED):
+            new, tr = self.state, None        # STO active: the power stage stays off
+        if tr == "15":
+            self._error_code = self._error_register = 0
+            self._send_emcy(0, 0)
+        if new is not self.state:
+            self._set_state(new, tr)          # entering operation enabled enters the mode
+        elif mode_changed and self.state is State.OPERATION_ENABLED:
+            self._enter_mode()
+        if self.state is State.OPERATION_ENABLED:
+            self._run_mode(cw, prev_cw)
+
+    def _enter_mode(self) -> None:
+        """The handpiece's behaviour on entering operation enabled or a new mode: velocity
+        mode follows the target velocity, position mode holds the current position."""
+        hp = self.world.handpiece
+        self._sp_ack = False
+        if self._mode_display == Mode.PROFILE_POSITION:
+            hp.move_relative(0.0)
+        elif self._mode_display == Mode.PROFILE_VELOCITY:
+            self._follow_velocity(self._od[co.obj("controlword").address])
+        else:
+            hp.stop()
+
+    def _follow_velocity(self, cw: int) -> None:
+        hp = self.world.handpiece
+        if cw & CW_HALT:
+            hp.stop()
+            return
+        rpm = self._od[co.obj("target_velocity").address] / self.gear_ratio
+        limit = hp.p.max_rpm
+        self._internal_limit = abs(rpm) > limit
+        hp.set_velocity(max(-limit, min(limit, rpm)))
+
+    def _run_mode(self, cw: int, prev_cw: int) -> None:
+        hp = self.world.handpiece
+        mode = self._mode_display
+        if mode == Mode.PROFILE_VELOCITY:
+            self._follow_velocity(cw)
+        elif mode == Mode.PROFILE_POSITION:
+            if cw & CW_NEW_SETPOINT and not prev_cw & CW_NEW_SETPOINT:
+                target = self._od[co.obj("target_position").address]
+                deg = target / self._inc_per_file_deg
+                if not cw & CW_RELATIVE:
+                    deg -= hp.pos_deg
+                pv = self._od[co.obj("profile_velocity").address] / self.gear_ratio
+                rpm = min(pv, hp.p.max_rpm) if pv > 0 else None
+                self._internal_limit = pv > hp.p.max_rpm
+                hp.move_relative(deg, rpm)
+                self._sp_ack = True
+                self.setpoints_accepted += 1
+            elif not cw & CW_NEW_SETPOINT:
+                self._sp_ack = False
+            if cw & CW_HALT and not prev_cw & CW_HALT:
+                hp.move_relative(0.0)
+
+    # ------------------------------------------------------------------ faults
+    def _poll_world(self) -> None:
+        """Faults the World causes: a fractured file, the STO dropping while powered."""
+        w = self.world
+        if w.fractured is not None and not self._fracture_reported:
+            self._fracture_reported = True
+            log.warning("epos4 sim: file fractured", cause=w.fractured.cause)
+            self._fault(FRACTURE_EMCY_CODE)
+        if w.estop and self.state in (State.SWITCHED_ON, State.OPERATION_ENABLED,
+                                      State.QUICK_STOP_ACTIVE):
+            self._fault(STO_EMCY_CODE)
+
+    def _fault(self, code: int, register: int | None = None,
+               manufacturer: bytes = bytes(5)) -> None:
+        self._error_code = code
+        self._error_register = co.error_register_for(code) if register is None else register
+        if self.state is not State.FAULT:
+            self._set_state(State.FAULT_REACTION_ACTIVE, "13")
+            self.world.handpiece.stop()
+            self._set_state(State.FAULT, "14")
+        self._send_emcy(code, self._error_register, manufacturer)
+
+    def _send_emcy(self, code: int, register: int, manufacturer: bytes = bytes(5)) -> None:
+        if self.muted or self.nmt_state not in (NmtState.PRE_OPERATIONAL,
+                                                NmtState.OPERATIONAL):
+            return
+        self._send(co.cob_id("EMCY", self.node_id), co.encode_emcy(code, register, manufacturer))
+        self.emcy_sent += 1
+        log.info("epos4 sim EMCY", node=self.node_id, code=hex(code),
+                 meaning=co.error_meaning(code))
