@@ -14,6 +14,7 @@ import sys
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
+from dentibot.io.devices import load_devices_config
 from dentibot.protocol.loader import load_protocol
 from dentibot.protocol.runner import EXIT_CODES, ProtocolRunner, step_duration_s
 from dentibot.telemetry import summary_json, summary_table
@@ -37,10 +38,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     protocol = load_protocol(args.protocol)          # bad input: raises before anything runs
-    if args.devices:
-        print("dentibot run: --devices (wire simulators or hardware) is not available yet; "
-              "runs use the built-in simulator", file=sys.stderr)
-        return 2
+    devices = load_devices_config(args.devices) if args.devices else None
     out = sys.stderr if args.json else sys.stdout
     console = Console(file=out)
     progress = Progress(TextColumn("{task.description:<16}"), BarColumn(bar_width=24),
@@ -59,7 +57,8 @@ def _run(args: argparse.Namespace) -> int:
         progress.update(task, completed=f["t"] - t0, figures=_figures_text(f))
 
     runner = ProtocolRunner(protocol, recording=None if args.out is None else args.out,
-                            progress=on_progress, no_record=args.no_record)
+                            progress=on_progress, no_record=args.no_record,
+                            devices=devices)
     try:
         with progress:
             result = asyncio.run(runner.run())
@@ -89,6 +88,7 @@ def add_parser(sub) -> None:
                      help="print the result as one JSON object (progress goes to stderr)")
     run.add_argument("--out", help="recording file (MCAP); default from the protocol")
     run.add_argument("--no-record", action="store_true", help="do not write a recording")
-    run.add_argument("--devices", help="device configuration (wire simulators or hardware)")
+    run.add_argument("--devices", help="device configuration YAML (wire simulators of "
+                     "'dentibot sim serve' or hardware); default: the built-in simulator")
     run.add_argument("--quiet", action="store_true", help="no progress display")
     run.set_defaults(func=cmd_run)

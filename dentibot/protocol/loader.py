@@ -23,7 +23,7 @@ class ProtocolFileError(ConfigError):
         self.path = path
         self.problems = problems
         lines = [f"{path}:{line if line else '?'}: {fld}: {text}" for line, fld, text in problems]
-        first_line, first_field, first_text = problems[0]
+        _, first_field, first_text = problems[0]
         super().__init__(first_field, None, first_text)
         self.args = ("invalid protocol\n" + "\n".join(lines),)
 
@@ -80,11 +80,11 @@ def parse_protocol(text: str, path: str = "<protocol>") -> Protocol:
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         line = mark.line + 1 if mark is not None else None
-        raise ProtocolFileError(path, [(line, "yaml", f"not valid YAML: "
-                                                       f"{getattr(exc, 'problem', exc)}")]) from None
+        what = f"not valid YAML: {getattr(exc, 'problem', exc)}"
+        raise ProtocolFileError(path, [(line, "yaml", what)]) from None
     if not isinstance(data, dict):
-        raise ProtocolFileError(path, [(1, "protocol", "the file must be a mapping "
-                                                       "(name: ..., steps: [...])")])
+        what = "the file must be a mapping (name: ..., steps: [...])"
+        raise ProtocolFileError(path, [(1, "protocol", what)])
     try:
         return Protocol.model_validate(data)
     except ValidationError as exc:

@@ -1,4 +1,5 @@
-"""Run a validated protocol end to end on the built-in simulator (lock-step time).
+"""Run a validated protocol end to end: on the built-in simulator in lock-step time (default),
+or on devices from a configuration (wire simulators or hardware) in real time.
 
 Each step drives the runtime through operator commands only (no step bypasses the state
 machine, the limits or the supervisor). Every tick goes to the MCAP recorder and to the live
@@ -16,10 +17,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import structlog
 
 from dentibot.control.feedrate import FeedrateParams
+from dentibot.errors import ConfigError
+from dentibot.io.devices import DevicesConfig, open_devices
 from dentibot.protocol.schema import Protocol
-from dentibot.runtime.config import RuntimeConfig, Thresholds, TreatmentPlan
+from dentibot.runtime.clock import RealTimeClock
+from dentibot.runtime.config import RuntimeConfig, Thresholds, ToolGeometry, TreatmentPlan
+from dentibot.runtime.control_task import Devices, Runtime
 from dentibot.runtime.harness import SimHarness
 from dentibot.runtime.strategies import StrategyParams, make_strategy
 from dentibot.sim.canal import CanalParams
@@ -28,6 +34,8 @@ from dentibot.sim.nitifile import NiTiFile
 from dentibot.sim.world import WorldConfig
 from dentibot.telemetry.recorder import McapRecorder
 from dentibot.telemetry.summary import RunSummary, SummaryAccumulator
+
+log = structlog.get_logger("dentibot.protocol")
 
 #: Longest time a single pass may take before the runner stops waiting (simulated s).
 PASS_TIMEOUT_S = 600.0
@@ -57,10 +65,14 @@ def runtime_config(p: Protocol) -> RuntimeConfig:
     lim = p.limits
     return RuntimeConfig(
         period_s=1.0 / p.control.rate_hz,
+        tool=ToolGeometry(tip_6_mm=p.tool.tip_mm,
+                          sensor_origin_6_mm=(0.0, 0.0, p.tool.sensor_offset_mm),
+                          grip_h_mm=p.tool.grip_mm),
         thresholds=Thresholds(patient_moved_n=lim.patient_moved_n,
                               patient_release_n=min(1.0, 0.66 * lim.patient_moved_n),
                               torque_limit_mnm=lim.torque_limit_mnm,
-                              axial_force_limit_n=lim.axial_force_limit_n),
+                              axial_force_limit_n=lim.axial_force_limit_n,
+                              stale_periods=lim.stale_periods.model_dump()),
         plan=TreatmentPlan(working_length_mm=p.phantom.working_length_mm,
                            orifice_gap_mm=p.phantom.orifice_gap_mm))
 
@@ -107,7 +119,7 @@ class ProtocolRunner:
     def __init__(self, protocol: Protocol, *, recording: str | Path | None = None,
                  progress: Callable[[dict], None] | None = None,
                  progress_every: int = 250, overwrite: bool = True,
-                 no_record: bool = False) -> None:
+                 no_record: bool = False, devices: DevicesConfig | None = None) -> None:
         self.p = protocol
         self.progress = progress
         self.progress_every = progress_every
@@ -115,10 +127,20 @@ class ProtocolRunner:
         self.summary: RunSummary | None = None
         self.acc = SummaryAccumulator(rate_hz=protocol.control.rate_hz)
         calibrate = any(s.kind == "calibrate_load" for s in protocol.steps)
-        self.h = SimHarness(world_config(protocol), runtime_config(protocol),
-                            calibrated=not calibrate, sink=self._row)
-        self.rt = self.h.runtime
-        self.rt.event_sink = self._event
+        self.devices = devices
+        self.h: SimHarness | None = None
+        self.world = None
+        self.rt: Runtime | None = None
+        if devices is None:
+            self.h = SimHarness(world_config(protocol), runtime_config(protocol),
+                                calibrated=not calibrate, sink=self._row)
+            self.world = self.h.world
+            self.rt = self.h.runtime
+            self.rt.event_sink = self._event
+        elif not calibrate:
+            raise ConfigError("steps", [s.kind for s in protocol.steps],
+                              "a calibrate_load step (real devices need the load identified "
+                              "before any force control)")
         self.recorder = None
         self._overwrite = overwrite
         self._abort_reason = ""
@@ -146,13 +168,26 @@ class ProtocolRunner:
 
     # ---------------------------------------------------------------- run
     async def run(self) -> RunResult:
+        if self.devices is None:
+            return await self._run()
+        p = self.p
+        async with open_devices(self.devices) as d:
+            self.rt = Runtime(Devices(d.arm, d.ft, d.motor, d.aux), runtime_config(p),
+                              RealTimeClock(1.0 / p.control.rate_hz), sink=self._row)
+            self.rt.event_sink = self._event
+            return await self._run()
+
+    async def _run(self) -> RunResult:
         p = self.p
         drills = [s.spec for s in p.steps if s.kind == "drill"]
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self.recorder = McapRecorder(self.path, {
                 "protocol": p.name, "seed": p.seed, "rate_hz": p.control.rate_hz,
-                "devices": {"arm": "sim", "ft": "sim", "handpiece": "sim", "aux": "sim"},
+                "devices": ({"arm": "sim", "ft": "sim", "handpiece": "sim", "aux": "sim"}
+                            if self.devices is None else
+                            {"arm": "meca500", "ft": "netft", "handpiece": "epos4",
+                             "aux": "modbus" if self.devices.aux else "none"}),
                 "file_torque_limit_mnm": p.file.torsional_strength_mnm,
                 **({"tau_d_mnm": drills[0].tau_d_mnm} if drills else {})},
                 overwrite=self._overwrite, validate=False)   # rows are checked in tests
@@ -178,8 +213,8 @@ class ProtocolRunner:
         return RunResult(summary, self.path)
 
     def _status(self) -> tuple[str, str]:
-        w = self.h.world
-        if w.fractured is not None:
+        w = self.world
+        if w is not None and w.fractured is not None:
             f = w.fractured
             return "fracture", (f"file fractured by {f.cause} at {f.t:.2f} s, "
                                 f"{f.torque_mnm:.1f} mNm, depth {f.depth_mm:.2f} mm")
@@ -206,8 +241,11 @@ class ProtocolRunner:
                 await rt.command("stop")
                 await rt.run(max_ticks=1)
         finally:
-            await self.h.devices.motor.stop()
-            await self.h.devices.arm.stop()
+            for dev in (rt.dev.motor, rt.dev.arm):
+                try:
+                    await dev.stop()
+                except Exception as exc:  # noqa: BLE001 - stop the other device too
+                    log.warning("safe stop: device stop failed", error=str(exc))
 
     async def _run_for(self, seconds: float, until=None) -> None:
         await self.rt.run(until=lambda r: r.state == "fault" or (until is not None and until(r)),
@@ -229,11 +267,14 @@ class ProtocolRunner:
 
     async def _step_drag(self, spec) -> None:
         await self._command("drag", already="dragging")
-        self.h.world.hand_force_0 = tuple(spec.hand_force_n)
+        if self.world is None:            # a real operator's hand moves the handpiece
+            await self._run_for(spec.duration_s)
+            return
+        self.world.hand_force_0 = tuple(spec.hand_force_n)
         try:
             await self._run_for(spec.duration_s)
         finally:
-            self.h.world.hand_force_0 = (0.0, 0.0, 0.0)
+            self.world.hand_force_0 = (0.0, 0.0, 0.0)
 
     async def _step_align(self, spec) -> None:
         rt = self.rt

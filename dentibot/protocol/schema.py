@@ -85,6 +85,15 @@ class PatientSpec(Strict):
         "static", description="phantom motion: none, thesis experiment 1 square, head sway")
 
 
+class StalePeriods(Strict):
+    """Control periods a stream may go without a new sample before it is a fault."""
+
+    arm: int = Field(10, ge=1, le=500)
+    ft: int = Field(5, ge=1, le=500)
+    motor: int = Field(10, ge=1, le=500)
+    aux: int = Field(50, ge=1, le=5000)
+
+
 class LimitsSpec(Strict):
     torque_limit_mnm: float = Field(0.9 * FILE_TORQUE_LIMIT_MNM, gt=0.0,
                                     le=FILE_TORQUE_LIMIT_MNM,
@@ -93,6 +102,7 @@ class LimitsSpec(Strict):
                                    description="||f_H|| above which the patient moved (N)")
     axial_force_limit_n: float = Field(3.0, ge=0.5, le=20.0,
                                        description="apical force cap (N)")
+    stale_periods: StalePeriods = StalePeriods()
 
 
 class RecordingSpec(Strict):

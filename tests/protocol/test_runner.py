@@ -78,7 +78,7 @@ async def test_cancel_stops_safely_and_still_writes_recording_and_summary(tmp_pa
     task.cancel()
     with pytest.raises(asyncio.CancelledError):
         await task
-    w = runner.h.world
+    w = runner.world
     assert w.handpiece.cmd_rpm == 0.0 and runner.rt.state == "idle"
     # withdrawn from the canal before stopping
     assert runner.rt.last_row["true_depth_mm"] < 0.0

@@ -1,0 +1,57 @@
+"""``dentibot sim serve``: a virtual DentiBot on loopback, over the real wire protocols.
+
+Point the drivers (``dentibot run --devices``), the vendors' own clients, or a second process
+at it. Ctrl-C stops it. Binds 127.0.0.1 unless ``--host`` says otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+
+from dentibot.sim.serve import ServePorts, VirtualDentiBot
+from dentibot.sim.world import WorldConfig
+
+
+async def _serve(args: argparse.Namespace) -> None:
+    ports = ServePorts(host=args.host, meca_port=args.meca_port, netft_port=args.netft_port,
+                       netft_http_port=args.netft_http_port, modbus_port=args.modbus_port,
+                       can_port=args.can_port)
+    async with VirtualDentiBot(WorldConfig(seed=args.seed, motion=args.motion), ports) as bot:
+        p = bot.ports
+        print(f"virtual DentiBot on {p['host']}: Meca500 tcp/{p['meca_port']} (monitoring "
+              f"tcp/{p['meca_monitor_port']}), Net F/T udp/{p['netft_port']} (http "
+              f"tcp/{p['netft_http_port']}), Modbus tcp/{p['modbus_port']}, EPOS4 node "
+              f"{args.node_id} via socketcand tcp/{p['can_port']} channel {p['can_channel']}",
+              flush=True)
+        if args.duration is not None:
+            await asyncio.sleep(args.duration)
+        else:
+            await asyncio.Event().wait()
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(_serve(args))
+    return 0
+
+
+def add_parser(sub) -> None:
+    sim = sub.add_parser("sim", help="simulators")
+    simsub = sim.add_subparsers(dest="sim_command", required=True)
+    serve = simsub.add_parser("serve", help="serve a virtual DentiBot over the wire protocols")
+    serve.add_argument("--host", default="127.0.0.1", help="address to bind (default loopback)")
+    serve.add_argument("--meca-port", type=int, default=10000,
+                       help="Meca500 control port; monitoring on the next port")
+    serve.add_argument("--netft-port", type=int, default=49152, help="Net F/T RDT UDP port")
+    serve.add_argument("--netft-http-port", type=int, default=8080,
+                       help="Net F/T calibration page (HTTP) port")
+    serve.add_argument("--modbus-port", type=int, default=5020, help="aux I/O Modbus TCP port")
+    serve.add_argument("--can-port", type=int, default=29536, help="socketcand TCP port")
+    serve.add_argument("--node-id", type=int, default=1, help="EPOS4 CANopen node id")
+    serve.add_argument("--seed", type=int, default=0, help="simulated world seed")
+    serve.add_argument("--motion", default="static", choices=["static", "square", "head"],
+                       help="patient / phantom motion")
+    serve.add_argument("--duration", type=float, help="stop after this many seconds")
+    serve.set_defaults(func=cmd_serve)

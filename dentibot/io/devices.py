@@ -1,0 +1,137 @@
+"""Device configuration (YAML) and start-up of the real drivers.
+
+A user with the hardware changes only addresses here; a user without it points the same
+drivers at ``dentibot sim serve`` (the defaults of :func:`loopback_config`). Example::
+
+    arm:       {host: 192.168.0.100, control_port: 10000, monitor_port: 10001}
+    ft:        {host: 192.168.1.1, port: 49152, http_port: 80}
+    handpiece: {interface: socketcand, host: 127.0.0.1, port: 29536, channel: vcan0, node_id: 1}
+    aux:       {host: 192.168.0.50, port: 502, device_id: 1}
+
+Start-up order: F/T stream, aux I/O, handpiece (NMT, PDOs, CiA 402 enable), arm (activate,
+home, velocity timeout as the dead-man). A failure closes what was opened, then raises.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from dentibot.errors import ConfigError
+from dentibot.io.aux_modbus import AuxModbusDriver
+from dentibot.io.epos4 import Epos4Driver
+from dentibot.io.meca500 import Meca500Driver
+from dentibot.io.netft import NetFTDriver
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ArmConfig(_Strict):
+    host: str = "192.168.0.100"
+    control_port: int = Field(10000, ge=1, le=65535)
+    monitor_port: int = Field(10001, ge=1, le=65535)
+    vel_timeout_s: float = Field(0.01, ge=0.001, le=1.0,
+                                 description="SetVelTimeout: the arm's dead-man (s)")
+
+
+class FTConfig(_Strict):
+    host: str = "192.168.1.1"
+    port: int = Field(49152, ge=1, le=65535)
+    http_port: int = Field(80, ge=1, le=65535)
+    counts_per_force: float | None = Field(None, gt=0)
+    counts_per_torque: float | None = Field(None, gt=0)
+
+
+class HandpieceConfigIO(_Strict):
+    interface: Literal["socketcand", "socketcan", "virtual", "pcan", "kvaser", "ixxat"] = \
+        "socketcan"
+    channel: str = "can0"
+    host: str = "127.0.0.1"
+    port: int = Field(29536, ge=1, le=65535)
+    node_id: int = Field(1, ge=1, le=127)
+
+
+class AuxConfig(_Strict):
+    host: str = "192.168.0.50"
+    port: int = Field(502, ge=1, le=65535)
+    device_id: int = Field(1, ge=0, le=247)
+
+
+class DevicesConfig(_Strict):
+    arm: ArmConfig = ArmConfig()
+    ft: FTConfig = FTConfig()
+    handpiece: HandpieceConfigIO = HandpieceConfigIO()
+    aux: AuxConfig | None = AuxConfig()
+
+
+def loopback_config(host: str = "127.0.0.1", meca_port: int = 10000, netft_port: int = 49152,
+                    netft_http_port: int = 8080, modbus_port: int = 5020,
+                    can_port: int = 29536, can_channel: str = "vcan0") -> DevicesConfig:
+    """The addresses ``dentibot sim serve`` listens on by default."""
+    return DevicesConfig(
+        arm=ArmConfig(host=host, control_port=meca_port, monitor_port=meca_port + 1),
+        ft=FTConfig(host=host, port=netft_port, http_port=netft_http_port),
+        handpiece=HandpieceConfigIO(interface="socketcand", host=host, port=can_port,
+                                    channel=can_channel),
+        aux=AuxConfig(host=host, port=modbus_port))
+
+
+def load_devices_config(path: str | Path) -> DevicesConfig:
+    p = Path(path)
+    try:
+        data = yaml.safe_load(p.read_text(encoding="utf-8")) or {}
+        return DevicesConfig.model_validate(data)
+    except OSError as exc:
+        raise ConfigError("devices", str(p), "a readable YAML file", exc.strerror) from None
+    except yaml.YAMLError as exc:
+        raise ConfigError("devices", str(p), "valid YAML", str(exc)) from None
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise ConfigError("devices." + ".".join(map(str, err["loc"])), err.get("input"),
+                          err["msg"], f"{len(exc.errors())} problem(s) in {p}") from None
+
+
+@dataclass
+class OpenDevices:
+    arm: Meca500Driver
+    ft: NetFTDriver
+    motor: Epos4Driver
+    aux: AuxModbusDriver | None
+
+
+@contextlib.asynccontextmanager
+async def open_devices(cfg: DevicesConfig, *, home: bool = True) -> AsyncIterator[OpenDevices]:
+    """Connect and start every device; close them all (in reverse) on exit."""
+    a, f, h, x = cfg.arm, cfg.ft, cfg.handpiece, cfg.aux
+    async with contextlib.AsyncExitStack() as stack:
+        ft = NetFTDriver(f.host, f.port, f.http_port, counts_per_force=f.counts_per_force,
+                         counts_per_torque=f.counts_per_torque)
+        await ft.connect()
+        stack.push_async_callback(ft.close)
+        aux = None
+        if x is not None:
+            aux = AuxModbusDriver(x.host, x.port, x.device_id)
+            await aux.connect()
+            stack.push_async_callback(aux.close)
+        bus_kwargs = {"host": h.host, "port": h.port} if h.interface == "socketcand" else {}
+        motor = Epos4Driver(interface=h.interface, channel=h.channel, host=h.host, port=h.port,
+                            node_id=h.node_id, bus_kwargs=bus_kwargs or None)
+        await motor.connect()
+        stack.push_async_callback(motor.close)
+        await motor.enable()
+        arm = Meca500Driver(a.host, a.control_port, a.monitor_port,
+                            vel_timeout_s=a.vel_timeout_s)
+        await arm.connect()
+        stack.push_async_callback(arm.close)
+        if home:
+            await arm.activate()
+            await arm.home()
+        yield OpenDevices(arm, ft, motor, aux)

@@ -1,0 +1,124 @@
+"""A virtual DentiBot on loopback: one simulated World behind the four real wire protocols.
+
+- Meca500 TCP text API on ``meca_port`` (monitoring on the next port);
+- ATI Net F/T RDT over UDP on ``netft_port`` plus its HTTP calibration page on ``netft_http_port``;
+- the auxiliary-I/O Modbus TCP server on ``modbus_port``;
+- the EPOS4 as a CANopen node on a python-can ``virtual`` bus, exposed to other processes
+  through a socketcand-compatible TCP endpoint on ``can_port``.
+
+The World is stepped in real time (:class:`~dentibot.sim.timing.RealTimeStepper`). Everything
+binds to ``host`` (127.0.0.1 unless configured otherwise): nothing accepts remote commands by
+default. Port 0 means an ephemeral port (tests); the bound ports are in :attr:`ports`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+from dataclasses import dataclass
+
+import can
+import structlog
+
+from dentibot.sim.aux_modbus_server import AuxModbusServer
+from dentibot.sim.epos4_node import Epos4Node
+from dentibot.sim.meca500_server import Meca500Server
+from dentibot.sim.netft_server import NetFTServer
+from dentibot.sim.socketcand import SocketcandServer
+from dentibot.sim.timing import RealTimeStepper
+from dentibot.sim.world import World, WorldConfig
+
+log = structlog.get_logger("dentibot.sim.serve")
+_bus_ids = itertools.count(1)
+
+
+@dataclass(frozen=True)
+class ServePorts:
+    host: str = "127.0.0.1"
+    meca_port: int = 10000
+    netft_port: int = 49152
+    netft_http_port: int = 8080
+    modbus_port: int = 5020
+    can_port: int = 29536
+    can_channel: str = "vcan0"
+    node_id: int = 1
+    netft_rate_hz: float = 500.0
+
+
+class VirtualDentiBot:
+    """All four wire simulators over one World; ``async with`` starts and stops them."""
+
+    def __init__(self, world: World | WorldConfig | None = None,
+                 ports: ServePorts = ServePorts()) -> None:
+        self.world = world if isinstance(world, World) else World(world)
+        self.cfg = ports
+        self.stepper = RealTimeStepper(self.world)
+        self._bus_channel = f"dentibot-serve-{id(self)}-{next(_bus_ids)}"
+        self._bus: can.BusABC | None = None
+        self._stop = asyncio.Event()
+        self._step_task: asyncio.Task | None = None
+        self.meca: Meca500Server | None = None
+        self.netft: NetFTServer | None = None
+        self.modbus: AuxModbusServer | None = None
+        self.epos: Epos4Node | None = None
+        self.socketcand: SocketcandServer | None = None
+
+    @property
+    def can_channel(self) -> str:
+        """The in-process virtual bus channel (same-process drivers use it directly)."""
+        return self._bus_channel
+
+    @property
+    def ports(self) -> dict:
+        return {
+            "host": self.cfg.host,
+            "meca_port": self.meca.port, "meca_monitor_port": self.meca.monitor_port,
+            "netft_port": self.netft.port, "netft_http_port": self.netft.http_port,
+            "modbus_port": self.modbus.port, "can_port": self.socketcand.port,
+            "can_channel": self.cfg.can_channel, "can_virtual_channel": self._bus_channel,
+        }
+
+    async def start(self) -> None:
+        c, w = self.cfg, self.world
+        self._stop.clear()
+        self._step_task = asyncio.create_task(self.stepper.run(self._stop),
+                                              name="world-stepper")
+        self.meca = Meca500Server(w, c.host, c.meca_port,
+                                  None if c.meca_port else 0)
+        self.netft = NetFTServer(w, c.host, c.netft_port, http_port=c.netft_http_port,
+                                 rate_hz=c.netft_rate_hz)
+        self.modbus = AuxModbusServer(w, c.host, c.modbus_port)
+        self._bus = can.Bus(interface="virtual", channel=self._bus_channel,
+                            receive_own_messages=False)
+        self.epos = Epos4Node(w, self._bus, c.node_id)
+        self.socketcand = SocketcandServer(
+            can.Bus(interface="virtual", channel=self._bus_channel), c.host, c.can_port,
+            c.can_channel)
+        try:
+            for server in (self.meca, self.netft, self.modbus, self.epos, self.socketcand):
+                await server.start()
+        except BaseException:
+            await self.close()
+            raise
+        log.info("virtual dentibot serving", **self.ports)
+
+    async def close(self) -> None:
+        self._stop.set()
+        for server in (self.socketcand, self.epos, self.modbus, self.netft, self.meca):
+            if server is not None:
+                await server.close()
+        if self.socketcand is not None:
+            self.socketcand.bus.shutdown()
+        if self._bus is not None:
+            self._bus.shutdown()
+            self._bus = None
+        if self._step_task is not None:
+            await self._step_task
+            self._step_task = None
+
+    async def __aenter__(self) -> VirtualDentiBot:  # noqa: PYI034
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.close()
