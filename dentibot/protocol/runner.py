@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import structlog
 
+from dentibot.control.admittance import EXPERIMENT_1
 from dentibot.control.feedrate import FeedrateParams
 from dentibot.errors import ConfigError
 from dentibot.io.devices import DevicesConfig, open_devices
@@ -41,6 +42,11 @@ log = structlog.get_logger("dentibot.protocol")
 PASS_TIMEOUT_S = 600.0
 #: Longest time the safe stop may spend withdrawing the file (simulated s).
 RETRACT_TIMEOUT_S = 20.0
+#: A canal whose lumen already has the target preparation's shape.
+PRESHAPED = {"initial_apical_mm": CanalParams.target_apical_mm,
+             "initial_taper": CanalParams.target_taper}
+#: Thesis 5.3: spindle speed 60 rpm.
+DRILLING_RPM = 60.0
 EXIT_CODES = {"ok": 0, "fault": 3, "fracture": 4, "aborted": 130}
 
 
@@ -57,7 +63,8 @@ def world_config(p: Protocol) -> WorldConfig:
         sensor=FTSensorParams(offset_mm=p.tool.sensor_offset_mm),
         file=NiTiFile(size=p.file.size, taper=p.file.taper, length_mm=float(p.file.length_mm),
                       torsional_strength_mnm=p.file.torsional_strength_mnm),
-        canal=CanalParams(working_length_mm=ph.working_length_mm, tilt_deg=ph.tilt_deg, **curve),
+        canal=CanalParams(working_length_mm=ph.working_length_mm, tilt_deg=ph.tilt_deg,
+                          **curve, **(PRESHAPED if ph.preshaped else {})),
         orifice_gap_mm=ph.orifice_gap_mm, motion=p.patient.motion)
 
 
@@ -75,6 +82,22 @@ def runtime_config(p: Protocol) -> RuntimeConfig:
                               stale_periods=lim.stale_periods.model_dump()),
         plan=TreatmentPlan(working_length_mm=p.phantom.working_length_mm,
                            orifice_gap_mm=p.phantom.orifice_gap_mm))
+
+
+def align_plan(plan: TreatmentPlan, spec) -> TreatmentPlan:
+    """The treatment plan for an align step (Table 6.4 when ``spec.config`` is set)."""
+    if spec.config is None:
+        return dataclasses.replace(plan, align_fz_n=spec.fz_n, align_rpm=spec.rpm,
+                                   align_params=None, align_feedrate=None)
+    c = EXPERIMENT_1[spec.config]
+    feedrate = None
+    if c.fz_bounds_n is not None:
+        lo, hi = c.fz_bounds_n
+        feedrate = FeedrateParams(tau_d_mnm=spec.tau_d_mnm, fz_min_n=lo, fz_max_n=hi)
+    return dataclasses.replace(
+        plan, align_fz_n=c.fz_n if c.fz_n is not None else 0.0,
+        align_rpm=DRILLING_RPM if c.file_rotation else 0.0,
+        align_params=c.params, align_feedrate=feedrate)
 
 
 def recording_path(p: Protocol, override: str | Path | None = None) -> Path | None:
@@ -278,8 +301,7 @@ class ProtocolRunner:
 
     async def _step_align(self, spec) -> None:
         rt = self.rt
-        rt.cfg = dataclasses.replace(rt.cfg, plan=dataclasses.replace(
-            rt.cfg.plan, align_fz_n=spec.fz_n, align_rpm=spec.rpm))
+        rt.cfg = dataclasses.replace(rt.cfg, plan=align_plan(rt.cfg.plan, spec))
         await self._command("align", already="self_aligning")
         await self._run_for(spec.duration_s)
 

@@ -71,6 +71,8 @@ class PhantomSpec(Strict):
     curve: CurveSpec | None = None
     orifice_gap_mm: float = Field(2.0, ge=0.0, le=20.0,
                                   description="file tip to orifice at the start (mm)")
+    preshaped: bool = Field(False, description="canal already shaped to the target (thesis "
+                                               "experiment 1: 'drilled thoroughly in advance')")
 
     @model_validator(mode="after")
     def _curve_inside(self):
@@ -122,9 +124,17 @@ class DragStep(Strict):
 
 
 class AlignStep(Strict):
+    """Self-alignment (4.4). ``config`` A/B/C takes Table 6.4's column (admittance b6, file
+    rotation at 60 rpm for B and C, constant fz = 1 N for A and B, feedrate control of fz in
+    -0.2..0.5 N for C) instead of ``fz_n`` and ``rpm``."""
+
     duration_s: float = Field(1.0, gt=0.0, le=600.0, description="how long (s)")
     fz_n: float = Field(1.0, ge=-2.0, le=2.0, description="insertion force f_d z (N)")
     rpm: float = Field(0.0, ge=0.0, le=200.0, description="file speed while aligning (rpm)")
+    config: Literal["A", "B", "C"] | None = Field(
+        None, description="thesis Table 6.4 configuration (experiment 1)")
+    tau_d_mnm: float = Field(40.0, gt=0.0, lt=FILE_TORQUE_LIMIT_MNM,
+                             description="desired file torque for config C (mNm)")
 
 
 class RoundSpec(Strict):

@@ -147,7 +147,7 @@ class LockStepClock(Clock):
     realtime = False
 
     def __init__(self, step: Callable[[], None], period_s: float = 0.002,
-                 yield_every: int = 1) -> None:
+                 yield_every: int = 10) -> None:
         self.period_s = _check_period(period_s)
         self._step = step
         self._yield_every = max(1, int(yield_every))

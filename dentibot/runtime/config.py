@@ -10,7 +10,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
+from dentibot.control.admittance import AdmittanceParams
+from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM, FeedrateParams
 from dentibot.errors import ConfigError
 from dentibot.runtime.strategies import StrategyParams
 
@@ -89,6 +90,10 @@ class TreatmentPlan:
     passes: int = 1                    # drill to working length and retract this many times
     align_fz_n: float = 1.0            # Table 6.4: fz = 1 N during alignment
     align_rpm: float = 0.0             # file turning during alignment (Table 6.4 B, C: yes)
+    # Table 6.4: the alignment's admittance (None: Table 4.3 self-alignment) and, for config
+    # C, feedrate control of fz during alignment (None: the constant align_fz_n).
+    align_params: AdmittanceParams | None = None
+    align_feedrate: FeedrateParams | None = None
     retract_fz_n: float = 0.5          # assumption: withdraw with -0.5 N (about 3 mm/s)
     retract_to_mm: float = -0.5        # assumption: retracted when the tip is 0.5 mm out
     # Distance (mm) from the file tip to the canal orifice along the file when alignment or

@@ -32,7 +32,7 @@ import numpy as np
 import structlog
 
 from dentibot.control.admittance import DRAGGING, SELF_ALIGNMENT, AdmittanceController
-from dentibot.control.feedrate import file_torque_estimate_mnm
+from dentibot.control.feedrate import FeedrateController, file_torque_estimate_mnm
 from dentibot.control.kinematics import Meca500, euler_xyz_deg
 from dentibot.control.wrench import GravityModel, WrenchTransform
 from dentibot.errors import DentibotError, DeviceFault
@@ -125,6 +125,7 @@ class Runtime:
         self._release_ticks = 0
         self._decision = Decision(0.0, 0.0)
         self._decided = -1
+        self._align_pd: FeedrateController | None = None
         self._pending: list[tuple[str, str | None]] = []
         self._stop = asyncio.Event()
 
@@ -329,6 +330,10 @@ class Runtime:
                     ev.append(("patient_released", f"||f_H|| = {est.force_norm_n:.2f} N"))
             else:
                 self._release_ticks = 0
+        elif st == "self_aligning" and self._align_pd is not None:
+            out = self._align_pd.step(tau)          # Table 6.4 config C: no reversal here
+            self._decision = Decision(out.fz_n, out.fz_star_n)
+            self._decided = self.ticks
         elif st == "treating.retracting":
             if est.depth_mm is not None and est.depth_mm <= self.cfg.plan.retract_to_mm:
                 ev.append(("retracted", f"depth {est.depth_mm:.2f} mm"))
@@ -357,8 +362,14 @@ class Runtime:
             await _quietly(d.motor.stop())
             self._file_cmd = ("stop",)
             return
+        if state == "self_aligning":
+            fr = self.cfg.plan.align_feedrate
+            self._align_pd = FeedrateController(fr, self.ts) if fr is not None else None
+            self._decision = Decision(self.cfg.plan.align_fz_n, self.cfg.plan.align_fz_n)
         if mode.admittance is not None:
             params = PRESETS[mode.admittance]
+            if state == "self_aligning" and self.cfg.plan.align_params is not None:
+                params = self.cfg.plan.align_params
             ref_h = self.cfg.tool.grip_h_mm if mode.ref == "A" else None
             if (params, mode.ref) != (self.admittance.params, self._ref):
                 self.admittance.set_params(params, ref_h)
@@ -441,7 +452,7 @@ class Runtime:
         if feed == "strategy":
             return self._decision.fz_n
         if feed == "align":
-            return self.cfg.plan.align_fz_n
+            return self._decision.fz_n if self._align_pd is not None else self.cfg.plan.align_fz_n
         if feed == "retract":
             return -self.cfg.plan.retract_fz_n
         return 0.0

@@ -151,7 +151,10 @@ class Canal:
         return self._red()[self.in_wl]
 
     def completeness(self) -> float:
-        """Eq 6.1: (red before - red now) / red before, in [0, 1]."""
+        """Eq 6.1: (red before - red now) / red before, in [0, 1]; 1 for a canal that had no
+        pulp left to remove (already shaped to the target)."""
+        if self.red0 <= 0.0:
+            return 1.0
         return (self.red0 - float(self._red().sum())) / self.red0
 
     def centreline_point(self, depth_mm: float) -> tuple[float, float, float]:

@@ -65,3 +65,10 @@ def test_completeness_starts_at_zero_and_exceeds_90_percent():
     assert all(b >= a for a, b in itertools.pairwise(history))
     assert history[-1] > 0.90, history
     assert (world.canal.red_area_mm2() <= red0 + 1e-12).all()
+
+
+def test_a_canal_already_at_the_target_shape_is_complete():
+    from dentibot.sim.canal import Canal, CanalParams
+
+    c = Canal(CanalParams(initial_apical_mm=0.25, initial_taper=0.06))
+    assert c.red0 == 0.0 and c.completeness() == 1.0
