@@ -14,6 +14,7 @@ from dentibot.control.admittance import AdmittanceParams
 from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM, FeedrateParams
 from dentibot.errors import ConfigError
 from dentibot.runtime.strategies import StrategyParams
+from dentibot.runtime.supervisor import SupervisorLimits
 
 
 def _check(name: str, value: float, lo: float, hi: float, unit: str = "") -> None:
@@ -64,10 +65,16 @@ class Thresholds:
     # assumption: released below 1.0 N held for 0.1 s (hysteresis against chattering).
     patient_release_n: float = 1.0
     patient_release_s: float = 0.1
+    # assumption: a real patient movement is followed within 2 s (the arm yields at
+    # 6.25 mm/s per N); a force that persists longer is sensor drift or a collision -> fault.
+    patient_persist_s: float = 2.0
     # assumption: hard file-torque limit 90 % of the 62 mNm strength: stop and reverse.
     torque_limit_mnm: float = 0.9 * FILE_TORQUE_LIMIT_MNM
     # assumption: apical force cap 3 N along the file (retract above it).
     axial_force_limit_n: float = 3.0
+    # assumption: past the working length by more than this (depth estimate) -> retract.
+    depth_margin_mm: float = 0.5
+    supervisor: SupervisorLimits = field(default_factory=SupervisorLimits)
     # Freshness bound per stream, in control periods (stale -> fault).
     stale_periods: dict = field(default_factory=lambda: {
         "arm": 10, "ft": 5, "motor": 10, "aux": 50})

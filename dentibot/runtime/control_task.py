@@ -41,7 +41,7 @@ from dentibot.runtime.clock import Clock, DeadlineStats
 from dentibot.runtime.config import RuntimeConfig
 from dentibot.runtime.load_calibration import LoadCalibration
 from dentibot.runtime.strategies import Decision, make_strategy
-from dentibot.runtime.supervisor import Finding, Freshness, non_finite
+from dentibot.runtime.supervisor import Finding, Supervisor
 from dentibot.states.modes import MODES, Mode
 from dentibot.states.treatment import Refusal, Treatment
 
@@ -95,6 +95,7 @@ class Runtime:
         tool[:3, 3] = config.tool.tip_6_mm
         self.kin = Meca500(tool=tool)
         self.admittance = AdmittanceController(self.kin, SELF_ALIGNMENT, self.ts)
+        self._speed_limits = [float(x) for x in self.kin.joint_speed_limits_deg_s]
         self.treatment = Treatment(passes_left=config.plan.passes - 1)
         self.gravity: GravityModel | None = None
         self._to_h: dict[str, WrenchTransform] = {}
@@ -102,7 +103,8 @@ class Runtime:
             self.set_gravity(gravity)
         self.strategy = make_strategy(config.plan.strategy, config.plan.working_length_mm,
                                       self.ts)
-        self.freshness = Freshness(config.thresholds.stale_periods)
+        self.supervisor = Supervisor(config.thresholds.stale_periods, self.ts,
+                                     config.thresholds.supervisor)
         self.stats = DeadlineStats(self.ts, deadlines=clock.realtime)
         self.sink = sink
         self.truth = truth
@@ -153,6 +155,14 @@ class Runtime:
         self._note("command", trigger if refusal is None else str(refusal))
         return refusal
 
+    async def estop(self, cause: str = "software emergency stop") -> None:
+        """Software emergency stop: file and arm stopped now (not at the next tick), then
+        the latched fault; only ``reset`` leaves it."""
+        await _quietly(self.dev.motor.stop())
+        await _quietly(self.dev.arm.stop())
+        await self.treatment.fire("fault", cause)
+        self._note("fault", cause)
+
     def request_stop(self) -> None:
         """Ask :meth:`run` to return after the current tick."""
         self._stop.set()
@@ -164,18 +174,16 @@ class Runtime:
 
         In real time the cyclic garbage collector runs only in the slack after a tick (young
         generation every 50 ticks, older every 5000), never in the middle of one: a full
-        collection triggered by allocation can take milliseconds. Objects alive at the start
-        are frozen out of the collector's sight (``gc.freeze``).
+        collection triggered by allocation can take milliseconds (tens with the simulators in
+        the same process). Objects alive at the start are frozen out of the collector's sight
+        (``gc.freeze``, which collects nothing itself).
         """
         self._stop.clear()
         realtime = self.clock.realtime
         gc_was_enabled = gc.isenabled()
         if realtime:
-            gc.collect()
-            gc.freeze()
+            gc.freeze()      # cheap (no collection): today's objects leave the collector's view
             gc.disable()
-            # the collection held the event loop: let the streams bring fresh samples first
-            await asyncio.sleep(2 * self.ts)
         self.clock.start()
         lateness = 0.0
         n = 0
@@ -215,6 +223,9 @@ class Runtime:
         if est is not None and not findings:
             events.extend(self._detect(est))
         for trigger, cause in events:
+            if trigger == "fault" and tr.state == "fault" and _kind(cause) in {
+                    _kind(c) for c in tr.fault_causes}:
+                continue                      # latched already, for this kind of cause
             refusal = await tr.fire(trigger, cause)
             self._note(trigger, (cause or "") if refusal is None else str(refusal))
         # 4. entry actions
@@ -224,10 +235,15 @@ class Runtime:
         qdot = None
         if est is not None:
             qdot = await self._command(est)
-        # 6. telemetry
+        # 6. telemetry: every tick, also when the inputs failed (then the last valid estimate
+        # is repeated and the row's events say "inputs_invalid")
         self.ticks = k + 1
-        if self.sink is not None and est is not None:
-            row = self._row(k, est, qdot, events, lateness_s,
+        if est is not None:
+            self.last = est
+        if self.sink is not None and self.last is not None:
+            if est is None:
+                events = [*events, ("inputs_invalid", None)]
+            row = self._row(k, self.last, qdot, events, lateness_s,
                             time.perf_counter() - t_start)
             self.last_row = row
             self.sink(row)
@@ -235,7 +251,6 @@ class Runtime:
     # ------------------------------------------------------------------ step 1-2
     async def _read_and_estimate(self, k: int):
         d = self.dev
-        findings: list[Finding] = []
         try:
             js = await d.arm.read()
             w = await d.ft.read()
@@ -243,28 +258,19 @@ class Runtime:
             aux = await d.aux.read() if d.aux is not None else None
         except DeviceFault as exc:
             return None, [Finding("device", str(exc))]
-        fr = self.freshness
-        for name, seq in (("arm", js.seq), ("ft", w.seq), ("motor", m.seq)):
-            f = fr.check(name, seq, k)
-            if f:
-                findings.append(f)
         if aux is not None:
-            f = fr.check("aux", aux.seq, k)
-            if f:
-                findings.append(f)
             self.treatment.estop_active = aux.estop
-            if aux.estop:
-                findings.append(Finding("estop", "emergency stop pressed (aux input)"))
+        findings = self.supervisor.check_inputs(k, js, w, m, aux)
+        if any(f.kind.startswith("nonfinite") for f in findings):
+            return None, findings
         raw = w.as_array()
-        for name, vals in (("wrench", raw), ("joints", js.q_deg),
-                           ("motor", (m.current_a, m.velocity_rpm))):
-            f = non_finite(name, vals)
-            if f:
-                return None, [*findings, f]
-        if m.fault:
-            findings.append(Finding("motor", m.fault))
         q = np.asarray(js.q_deg, dtype=float)
         est = self._estimate(q, raw, m)
+        if not findings and self.gravity is not None:
+            turning = self._mode.file in ("forward", "align") and abs(m.velocity_rpm) > 5.0
+            findings = self.supervisor.check_estimate(
+                est, self.kin, self._kin[1], self._depth_ref, self.cfg.plan.working_length_mm,
+                turning)
         return est, findings
 
     def _estimate(self, q: np.ndarray, raw: np.ndarray, m) -> Estimate:
@@ -302,6 +308,11 @@ class Runtime:
                 self.patient_episodes += 1
                 return [("patient_moved", (f"||f_H|| = {est.force_norm_n:.2f} N "
                                           f"> {th.patient_moved_n} N"))]
+            if est.depth_mm is not None and \
+                    est.depth_mm > self.cfg.plan.working_length_mm + th.depth_margin_mm:
+                return [("depth_limit", (f"depth {est.depth_mm:.2f} mm > working length "
+                                         f"{self.cfg.plan.working_length_mm} + "
+                                         f"{th.depth_margin_mm} mm"))]
             if -est.wrench_h[2] > th.axial_force_limit_n:
                 return [("force_limit", (f"axial force {-est.wrench_h[2]:.2f} N > "
                                         f"{th.axial_force_limit_n} N"))]
@@ -326,10 +337,17 @@ class Runtime:
         elif st == "treating.patient_moved":
             if est.force_norm_n < th.patient_release_n:
                 self._release_ticks += 1
+                self._persist_ticks = 0
                 if self._release_ticks * self.ts >= th.patient_release_s:
                     ev.append(("patient_released", f"||f_H|| = {est.force_norm_n:.2f} N"))
             else:
                 self._release_ticks = 0
+                self._persist_ticks += 1
+                if self._persist_ticks * self.ts > th.patient_persist_s:
+                    ev.append(("fault", (f"force {est.force_norm_n:.2f} N persists "
+                                         f"{th.patient_persist_s} s while the arm follows "
+                                         f"(limit {th.patient_release_n} N): sensor drift or "
+                                         "a collision, not a patient movement")))
         elif st == "self_aligning" and self._align_pd is not None:
             out = self._align_pd.step(tau)          # Table 6.4 config C: no reversal here
             self._decision = Decision(out.fz_n, out.fz_star_n)
@@ -396,6 +414,7 @@ class Runtime:
             self._reversal_start = (est.motor_pos_deg if est else 0.0, self.ticks)
         if state == "treating.patient_moved":
             self._release_ticks = 0
+            self._persist_ticks = 0
         if state == "calibrating.load" and est is not None:
             self._calib = LoadCalibration(est.q_deg, self.ts, limits_deg=self.kin.joint_limits_deg)
             self._calib_target = None
@@ -441,6 +460,11 @@ class Runtime:
         f_in[2] += fz
         self._fz_now = fz
         cmd = self.admittance.step(est.q_deg, f_in, self._kin)
+        bad = self.supervisor.check_command(cmd.qdot_deg_s, cmd.twist, self._speed_limits)
+        if bad:
+            self._pending.extend(("fault", str(f)) for f in bad)
+            await arm.move_joints_vel(_ZERO6)
+            return _ZERO6
         try:
             await arm.move_joints_vel(cmd.qdot_deg_s)
         except DentibotError as exc:
@@ -504,6 +528,11 @@ class _MotorView:
         self.current_a = est.motor_current_a
         self.velocity_rpm = est.motor_rpm
         self.position_deg = est.motor_pos_deg
+
+
+def _kind(cause: str | None) -> str:
+    """The finding kind of a fault cause ("stale_ft: ..." -> "stale_ft")."""
+    return (cause or "").split(":", 1)[0]
 
 
 async def _quietly(coro) -> None:

@@ -78,6 +78,7 @@ TRANSITIONS = [
     ("section_finished", "treating.drilling.feeding", None, {}),
     ("working_length_reached", "treating.drilling", "treating.retracting", {}),
     ("force_limit", "treating.drilling", "treating.retracting", {}),
+    ("depth_limit", "treating.drilling", "treating.retracting", {}),
     ("retract", ["treating.drilling", "treating.patient_moved", "treating.paused"],
      "treating.retracting", {}),
     ("retracted", "treating.retracting", "treating.drilling", {"conditions": "more_passes"}),

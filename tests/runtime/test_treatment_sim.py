@@ -191,3 +191,23 @@ async def test_dragging_moves_the_grip_at_k_over_b_per_newton():
     assert abs(moved[1]) < 0.3 and abs(moved[2]) < 0.3
     rot = np.array(rows[-1]["tool_pose"][3:]) - np.array(rows[10]["tool_pose"][3:])
     assert np.max(np.abs((rot + 180.0) % 360.0 - 180.0)) < 0.5   # angles wrap at 180 deg
+
+
+async def test_the_depth_limit_retracts_even_if_the_strategy_would_push_on():
+    """A strategy that never stops feeding (a bug, or a mis-set working length): the
+    supervisor's depth limit (working length + 0.5 mm) withdraws the file."""
+    from dentibot.runtime.strategies import Decision, DrillingStrategy, StrategyParams
+
+    class PushForever(DrillingStrategy):
+        def step(self, tau_mnm, depth_mm):
+            return Decision(0.5, 0.5, ())
+
+    h, rows = harness(seed=10, canal=CanalParams(working_length_mm=6.0),
+                      plan=TreatmentPlan(working_length_mm=6.0, orifice_gap_mm=2.0))
+    rt = h.runtime
+    rt.strategy = PushForever(StrategyParams(), 6.0, rt.ts)
+    await rt.command("drill")
+    await rt.run(until=lambda r: r.state != "treating.drilling.feeding", max_ticks=30_000)
+    assert rt.state == "treating.retracting"
+    assert any("depth_limit" in r["events"] for r in rows)
+    assert max(r["depth_mm"] for r in rows) <= 6.5 + 0.05      # one tick of feed past it

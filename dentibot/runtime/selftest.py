@@ -1,0 +1,181 @@
+"""``dentibot selftest faults``: every fault of the catalogue injected while drilling.
+
+For each fault: a seeded simulated procedure drills with the automated algorithm until the
+file is well inside the canal, the fault is injected, and the run goes on for up to
+``watch_s``. Reported: when the runtime reacted (``detected_ms`` after the injection: the
+first tick whose state left drilling, or whose events name the fault), the reaction (the first
+transition after the injection), the final state, the file and arm state, and
+``samples_lost``: ticks the runtime ran minus ticks read back from the MCAP recording (which
+must hold every tick up to and including the fault).
+"""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from dentibot.runtime.config import RuntimeConfig, TreatmentPlan
+from dentibot.runtime.control_task import Devices
+from dentibot.runtime.harness import SimHarness
+from dentibot.sim.faults import FAULTS, FaultInjector
+from dentibot.sim.world import WorldConfig
+from dentibot.telemetry.reader import read_recording
+from dentibot.telemetry.recorder import McapRecorder
+
+#: What a safe outcome is for each fault (final states accepted) and the detection bound (ms)
+#: derived from the supervisor's limits at 500 Hz.
+EXPECT: dict[str, tuple[tuple[str, ...], float | None]] = {
+    "ft_packet_loss": (("treating.drilling.feeding", "treating.drilling.reversing"), None),
+    "ft_delay": (("fault",), 14.0),          # stale after 5 periods (+1 to notice)
+    "ft_stream_stop": (("fault",), 14.0),
+    "ft_nan": (("fault",), 2.0),
+    "ft_saturation": (("fault",), 2.0),
+    "ft_offset_drift": (("fault",), 4000.0),  # 1.5 N after 1.5 s, then persists 2 s
+    "arm_disconnect": (("fault",), 2.0),
+    "arm_error": (("fault",), 4.0),           # the refused command, seen the next tick
+    "can_silence": (("fault",), 24.0),        # stale after 10 periods
+    "emcy": (("fault",), 2.0),
+    "bus_off": (("fault",), 2.0),
+    "file_binding": (("treating.drilling.feeding", "treating.drilling.reversing"), 20.0),
+    "patient_jerk": (("fault", "treating.patient_moved", "treating.drilling.feeding",
+                      "treating.drilling.reversing"), 60.0),
+}
+
+
+@dataclass
+class FaultResult:
+    fault: str
+    detected_ms: float | None
+    reaction: str
+    final_state: str
+    file_rpm: float
+    arm_speed_deg_s: float
+    samples_lost: int
+    cause: str
+    ok: bool
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+async def run_fault(name: str, seed: int = 1, engage_s: float = 3.0, watch_s: float = 5.0,
+                    directory: Path | None = None) -> FaultResult:
+    tmp = None
+    if directory is None:
+        tmp = tempfile.TemporaryDirectory()
+        directory = Path(tmp.name)
+    path = Path(directory) / f"fault-{name}.mcap"
+    recorder = McapRecorder(path, {"protocol": f"selftest-{name}", "seed": seed,
+                                   "rate_hz": 500.0, "devices": {"all": "sim+faults"}},
+                            overwrite=True, validate=False)
+    h = SimHarness(WorldConfig(seed=seed), RuntimeConfig(plan=TreatmentPlan(orifice_gap_mm=2.0)),
+                   sink=recorder.record)
+    rt, w = h.runtime, h.world
+    rt.event_sink = lambda tick, kind, detail: recorder.event(kind, detail, t=tick * rt.ts,
+                                                              tick=tick)
+    d = h.devices
+    fi = FaultInjector(w, d.arm, d.ft, d.motor, d.aux)
+    rt.dev = Devices(fi.arm, fi.ft, fi.motor, fi.aux)
+    try:
+        await rt.command("drill")
+        await rt.run(max_ticks=round(engage_s / rt.ts))
+        k0, hist0 = rt.ticks, len(rt.treatment.history)
+        fi.inject(name)
+        detected = None
+
+        def reacted(r) -> bool:
+            nonlocal detected
+            if detected is None and (not r.state.startswith("treating.drilling")
+                                     or len(r.treatment.history) > hist0):
+                detected = r.ticks - 1
+            return r.state == "fault"
+        await rt.run(until=reacted, max_ticks=round(watch_s / rt.ts))
+        await rt.run(max_ticks=25)     # the safe state holds
+        final = rt.state
+    finally:
+        recorder.close("fault" if rt.state == "fault" else "ok",
+                       "; ".join(rt.treatment.fault_causes))
+    rec = read_recording(path)
+    ticks = [r["tick"] for r in rec.rows]
+    lost = rt.ticks - len(ticks) + (0 if ticks == list(range(len(ticks))) else 1)
+    if tmp is not None:
+        tmp.cleanup()
+    new = rt.treatment.history[hist0:]
+    reaction = new[0][0] if new else "tolerated"
+    detected_ms = None if detected is None else (detected - k0 + 1) * rt.ts * 1e3
+    states, bound = EXPECT[name]
+    arm_speed = max(abs(x) for x in w.arm.qdot)
+    safe = final in states and (final != "fault" or (w.handpiece.cmd_rpm == 0.0
+                                                     and arm_speed < 1.0))
+    in_time = bound is None or (detected_ms is not None and detected_ms <= bound)
+    return FaultResult(name, detected_ms, reaction, final, w.handpiece.omega_rpm, arm_speed,
+                       lost, "; ".join(rt.treatment.fault_causes), safe and in_time and lost == 0)
+
+
+async def run_catalogue(faults=FAULTS, seed: int = 1) -> list[FaultResult]:
+    return [await run_fault(f, seed=seed) for f in faults]
+
+
+#: Faults injected on the wire simulators (real drivers, real time, loopback) and the hook of
+#: the simulator that produces each.
+WIRE_FAULTS = ("ft_stream_stop", "arm_disconnect", "can_silence", "emcy")
+
+
+async def run_wire_fault(name: str, seed: int = 1, settle_s: float = 0.3,
+                         watch_s: float = 2.0) -> FaultResult:
+    """The same check over the wire: ``dentibot sim serve``'s simulators in this process, the
+    four real drivers, the runtime on a real-time clock (idle: all streams read every tick)."""
+    from dentibot.io.devices import loopback_config, open_devices
+    from dentibot.runtime.clock import RealTimeClock
+    from dentibot.runtime.config import Thresholds
+    from dentibot.runtime.control_task import Runtime
+    from dentibot.runtime.harness import tool_geometry_of, true_gravity_model
+    from dentibot.sim.serve import ServePorts, VirtualDentiBot
+    from dentibot.sim.world import World
+
+    if name not in WIRE_FAULTS:
+        raise ValueError(f"unknown wire fault {name!r}; one of {', '.join(WIRE_FAULTS)}")
+    world = World(WorldConfig(seed=seed))
+    ports = ServePorts(meca_port=0, netft_port=0, netft_http_port=0, modbus_port=0, can_port=0)
+    # loopback on a shared machine: bounds of 20 periods (40 ms) rather than hardware's 5-10
+    th = Thresholds(stale_periods={"arm": 20, "ft": 20, "motor": 20, "aux": 100})
+    rows: list[dict] = []
+    async with VirtualDentiBot(world, ports) as bot:
+        p = bot.ports
+        cfg = loopback_config(meca_port=p["meca_port"], netft_port=p["netft_port"],
+                              netft_http_port=p["netft_http_port"],
+                              modbus_port=p["modbus_port"], can_port=p["can_port"])
+        cfg = cfg.model_copy(update={"arm": cfg.arm.model_copy(
+            update={"monitor_port": p["meca_monitor_port"]})})
+        async with open_devices(cfg) as d:
+            rt = Runtime(Devices(d.arm, d.ft, d.motor, d.aux),
+                         RuntimeConfig(tool=tool_geometry_of(world), thresholds=th),
+                         RealTimeClock(0.002), gravity=true_gravity_model(world),
+                         sink=rows.append)
+            await rt.run(max_ticks=round(settle_s / rt.ts))
+            if rt.state == "fault":
+                raise RuntimeError("wire selftest: the runtime faulted before the injection: "
+                                   + "; ".join(rt.treatment.fault_causes))
+            k0 = rt.ticks
+            if name == "ft_stream_stop":
+                bot.netft.stop_stream()
+            elif name == "arm_disconnect":
+                bot.meca.drop_clients()
+            elif name == "can_silence":
+                bot.epos.muted = True
+            else:
+                bot.epos.inject_emcy(0x2310)
+            await rt.run(until=lambda r: r.state == "fault", max_ticks=round(watch_s / rt.ts))
+            detected = next((r["tick"] for r in rows[k0:] if r["state"] == "fault"), None)
+            await rt.run(max_ticks=25)
+            final = rt.state
+            arm_speed = max(abs(x) for x in world.arm.qdot)
+    ticks = [r["tick"] for r in rows]
+    lost = rt.ticks - len(ticks) + (0 if ticks == list(range(len(ticks))) else 1)
+    detected_ms = None if detected is None else (detected - k0 + 1) * rt.ts * 1e3
+    ok = final == "fault" and detected_ms is not None and lost == 0 and \
+        world.handpiece.cmd_rpm == 0.0 and arm_speed < 1.0
+    return FaultResult(f"wire:{name}", detected_ms, "fault" if detected else "none", final,
+                       world.handpiece.omega_rpm, arm_speed, lost,
+                       "; ".join(rt.treatment.fault_causes), ok)

@@ -1,0 +1,142 @@
+"""Fault injection for the in-process simulated devices and the world.
+
+:class:`FaultInjector` wraps the four in-process devices (same interfaces) and, on
+``inject(name)``, makes them misbehave the way the real ones do:
+
+====================  ======================================================================
+``ft_packet_loss``    three F/T records lost in a row (the last one is seen again)
+``ft_delay``          F/T delivery paused for 30 ms, then resumes (a delayed burst)
+``ft_stream_stop``    the F/T stream stops for good
+``ft_nan``            a NaN in the F/T force
+``ft_saturation``     an F/T channel at the end of its range (status bit)
+``ft_offset_drift``   the force offset drifts 1 N/s along the sensor's x axis
+``arm_disconnect``    the Meca500 link drops (read raises ``DeviceFault``)
+``arm_error``         the arm latches error 1007 (joint limit) and refuses motion
+``can_silence``       the EPOS4 stops answering SYNC (no new TxPDO)
+``emcy``              the EPOS4 sends EMCY 0x2310 (overcurrent) and goes to FAULT
+``bus_off``           the CAN controller goes bus-off (read raises ``DeviceFault``)
+``file_binding``      debris packs the flutes: +30 mNm of resistance at once
+``patient_jerk``      the patient jerks the tooth 5 mm sideways at 100 mm/s
+====================  ======================================================================
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+from dentibot.errors import DeviceFault
+from dentibot.io.interfaces import WRENCH_SATURATED, Wrench
+from dentibot.sim.arm import ERROR_JOINT_LIMIT
+from dentibot.sim.world import World
+
+FAULTS = ("ft_packet_loss", "ft_delay", "ft_stream_stop", "ft_nan", "ft_saturation",
+          "ft_offset_drift", "arm_disconnect", "arm_error", "can_silence", "emcy", "bus_off",
+          "file_binding", "patient_jerk")
+
+
+class _Jerk:
+    """The phantom's motion with a sideways jerk added from ``t0``."""
+
+    def __init__(self, base, t0: float, mm: float = 5.0, mm_s: float = 100.0) -> None:
+        self.base, self.t0, self.mm, self.v = base, t0, mm, mm_s
+
+    def offset_mm(self, t: float):
+        b = self.base.offset_mm(t)
+        return (b[0] + min(max(t - self.t0, 0.0) * self.v, self.mm), b[1], b[2])
+
+
+class _Wrapped:
+    def __init__(self, inner, fi: FaultInjector) -> None:
+        self.inner = inner
+        self.fi = fi
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
+class _FaultyFT(_Wrapped):
+    async def read(self) -> Wrench:
+        fi = self.fi
+        w = await self.inner.read()
+        held = fi.held_ft
+        if fi.active("ft_stream_stop") and held is not None:
+            return held
+        if fi.ft_hold_ticks > 0 and held is not None:
+            fi.ft_hold_ticks -= 1
+            return held
+        if fi.active("ft_nan"):
+            w = dataclasses.replace(w, force_n=(math.nan, *w.force_n[1:]))
+        if fi.active("ft_saturation"):
+            w = dataclasses.replace(w, status=w.status | WRENCH_SATURATED)
+        if fi.active("ft_offset_drift"):
+            dx = 1.0 * (fi.world.t - fi.t0)
+            w = dataclasses.replace(w, force_n=(w.force_n[0] + dx, *w.force_n[1:]))
+        fi.held_ft = w
+        return w
+
+
+class _FaultyArm(_Wrapped):
+    async def read(self):
+        if self.fi.active("arm_disconnect"):
+            raise DeviceFault("meca500", "control link lost (connection reset by peer)")
+        return await self.inner.read()
+
+    async def move_joints_vel(self, qdot_deg_s) -> None:
+        if self.fi.active("arm_disconnect"):
+            raise DeviceFault("meca500", "control link lost (connection reset by peer)")
+        await self.inner.move_joints_vel(qdot_deg_s)
+
+
+class _FaultyMotor(_Wrapped):
+    async def read(self):
+        fi = self.fi
+        if fi.active("bus_off"):
+            raise DeviceFault("epos4", "CAN controller bus-off (too many transmit errors)")
+        m = await self.inner.read()
+        if fi.active("can_silence") and fi.held_motor is not None:
+            return fi.held_motor
+        if fi.active("emcy"):
+            m = dataclasses.replace(m, enabled=False,
+                                    fault="EMCY 0x2310 overcurrent, drive in FAULT")
+        fi.held_motor = m
+        return m
+
+
+class FaultInjector:
+    """Wraps the in-process devices of ``world``; ``inject(name)`` starts a fault now."""
+
+    def __init__(self, world: World, arm, ft, motor, aux) -> None:
+        self.world = world
+        self.arm = _FaultyArm(arm, self)
+        self.ft = _FaultyFT(ft, self)
+        self.motor = _FaultyMotor(motor, self)
+        self.aux = aux
+        self.faults: set[str] = set()
+        self.t0 = 0.0
+        self.held_ft: Wrench | None = None
+        self.held_motor = None
+        self.ft_hold_ticks = 0
+
+    def active(self, name: str) -> bool:
+        return name in self.faults
+
+    def inject(self, name: str) -> None:
+        if name not in FAULTS:
+            raise ValueError(f"unknown fault {name!r}; one of {', '.join(FAULTS)}")
+        w = self.world
+        self.t0 = w.t
+        if name == "ft_packet_loss":
+            self.ft_hold_ticks = 3
+        elif name == "ft_delay":
+            self.ft_hold_ticks = round(0.030 / w.ts)
+        elif name == "arm_error":
+            w.arm.error_code = ERROR_JOINT_LIMIT
+            w.arm.stop()
+        elif name == "emcy":
+            w.handpiece.stop()           # the drive disables its output stage
+        elif name == "file_binding":
+            w.canal.debris_mm3 += 1.0
+        elif name == "patient_jerk":
+            w.motion = _Jerk(w.motion, w.t)
+        self.faults.add(name)
