@@ -74,10 +74,13 @@ class DevicesConfig(_Strict):
 
 def loopback_config(host: str = "127.0.0.1", meca_port: int = 10000, netft_port: int = 49152,
                     netft_http_port: int = 8080, modbus_port: int = 5020,
-                    can_port: int = 29536, can_channel: str = "vcan0") -> DevicesConfig:
-    """The addresses ``dentibot sim serve`` listens on by default."""
+                    can_port: int = 29536, can_channel: str = "vcan0",
+                    meca_monitor_port: int | None = None) -> DevicesConfig:
+    """The addresses ``dentibot sim serve`` listens on (by default: its default ports; the
+    Meca500 monitoring port is the next one unless given)."""
     return DevicesConfig(
-        arm=ArmConfig(host=host, control_port=meca_port, monitor_port=meca_port + 1),
+        arm=ArmConfig(host=host, control_port=meca_port,
+                      monitor_port=meca_monitor_port or meca_port + 1),
         ft=FTConfig(host=host, port=netft_port, http_port=netft_http_port),
         handpiece=HandpieceConfigIO(interface="socketcand", host=host, port=can_port,
                                     channel=can_channel),

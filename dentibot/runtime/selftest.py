@@ -126,7 +126,7 @@ async def run_wire_fault(name: str, seed: int = 1, settle_s: float = 0.3,
                          watch_s: float = 2.0) -> FaultResult:
     """The same check over the wire: ``dentibot sim serve``'s simulators in this process, the
     four real drivers, the runtime on a real-time clock (idle: all streams read every tick)."""
-    from dentibot.io.devices import loopback_config, open_devices
+    from dentibot.io.devices import open_devices
     from dentibot.runtime.clock import RealTimeClock
     from dentibot.runtime.config import Thresholds
     from dentibot.runtime.control_task import Runtime
@@ -141,36 +141,29 @@ async def run_wire_fault(name: str, seed: int = 1, settle_s: float = 0.3,
     # loopback on a shared machine: bounds of 20 periods (40 ms) rather than hardware's 5-10
     th = Thresholds(stale_periods={"arm": 20, "ft": 20, "motor": 20, "aux": 100})
     rows: list[dict] = []
-    async with VirtualDentiBot(world, ports) as bot:
-        p = bot.ports
-        cfg = loopback_config(meca_port=p["meca_port"], netft_port=p["netft_port"],
-                              netft_http_port=p["netft_http_port"],
-                              modbus_port=p["modbus_port"], can_port=p["can_port"])
-        cfg = cfg.model_copy(update={"arm": cfg.arm.model_copy(
-            update={"monitor_port": p["meca_monitor_port"]})})
-        async with open_devices(cfg) as d:
-            rt = Runtime(Devices(d.arm, d.ft, d.motor, d.aux),
-                         RuntimeConfig(tool=tool_geometry_of(world), thresholds=th),
-                         RealTimeClock(0.002), gravity=true_gravity_model(world),
-                         sink=rows.append)
-            await rt.run(max_ticks=round(settle_s / rt.ts))
-            if rt.state == "fault":
-                raise RuntimeError("wire selftest: the runtime faulted before the injection: "
-                                   + "; ".join(rt.treatment.fault_causes))
-            k0 = rt.ticks
-            if name == "ft_stream_stop":
-                bot.netft.stop_stream()
-            elif name == "arm_disconnect":
-                bot.meca.drop_clients()
-            elif name == "can_silence":
-                bot.epos.muted = True
-            else:
-                bot.epos.inject_emcy(0x2310)
-            await rt.run(until=lambda r: r.state == "fault", max_ticks=round(watch_s / rt.ts))
-            detected = next((r["tick"] for r in rows[k0:] if r["state"] == "fault"), None)
-            await rt.run(max_ticks=25)
-            final = rt.state
-            arm_speed = max(abs(x) for x in world.arm.qdot)
+    async with VirtualDentiBot(world, ports) as bot, open_devices(bot.devices_config()) as d:
+        rt = Runtime(Devices(d.arm, d.ft, d.motor, d.aux),
+                     RuntimeConfig(tool=tool_geometry_of(world), thresholds=th),
+                     RealTimeClock(0.002), gravity=true_gravity_model(world),
+                     sink=rows.append)
+        await rt.run(max_ticks=round(settle_s / rt.ts))
+        if rt.state == "fault":
+            raise RuntimeError("wire selftest: the runtime faulted before the injection: "
+                               + "; ".join(rt.treatment.fault_causes))
+        k0 = rt.ticks
+        if name == "ft_stream_stop":
+            bot.netft.stop_stream()
+        elif name == "arm_disconnect":
+            bot.meca.drop_clients()
+        elif name == "can_silence":
+            bot.epos.muted = True
+        else:
+            bot.epos.inject_emcy(0x2310)
+        await rt.run(until=lambda r: r.state == "fault", max_ticks=round(watch_s / rt.ts))
+        detected = next((r["tick"] for r in rows[k0:] if r["state"] == "fault"), None)
+        await rt.run(max_ticks=25)
+        final = rt.state
+        arm_speed = max(abs(x) for x in world.arm.qdot)
     ticks = [r["tick"] for r in rows]
     lost = rt.ticks - len(ticks) + (0 if ticks == list(range(len(ticks))) else 1)
     detected_ms = None if detected is None else (detected - k0 + 1) * rt.ts * 1e3

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import can
 import structlog
 
+from dentibot.io.devices import DevicesConfig, loopback_config
 from dentibot.sim.aux_modbus_server import AuxModbusServer
 from dentibot.sim.epos4_node import Epos4Node
 from dentibot.sim.meca500_server import Meca500Server
@@ -77,6 +78,13 @@ class VirtualDentiBot:
             "modbus_port": self.modbus.port, "can_port": self.socketcand.port,
             "can_channel": self.cfg.can_channel, "can_virtual_channel": self._bus_channel,
         }
+
+    def devices_config(self) -> DevicesConfig:
+        """The device configuration that points the real drivers at these simulators."""
+        p = self.ports
+        return loopback_config(p["host"], p["meca_port"], p["netft_port"], p["netft_http_port"],
+                               p["modbus_port"], p["can_port"], p["can_channel"],
+                               meca_monitor_port=p["meca_monitor_port"])
 
     async def start(self) -> None:
         c, w = self.cfg, self.world

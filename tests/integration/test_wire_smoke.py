@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import structlog
 
-from dentibot.io.devices import loopback_config, open_devices
+from dentibot.io.devices import open_devices
 from dentibot.runtime.clock import RealTimeClock
 from dentibot.runtime.config import RuntimeConfig, Thresholds
 from dentibot.runtime.control_task import Devices, Runtime
@@ -50,19 +50,12 @@ async def test_same_motion_in_process_and_over_the_wire():
 
     world = World(WorldConfig(seed=21))
     ports = ServePorts(meca_port=0, netft_port=0, netft_http_port=0, modbus_port=0, can_port=0)
-    async with VirtualDentiBot(world, ports) as bot:
-        p = bot.ports
-        cfg = loopback_config(meca_port=p["meca_port"], netft_port=p["netft_port"],
-                              netft_http_port=p["netft_http_port"],
-                              modbus_port=p["modbus_port"], can_port=p["can_port"])
-        cfg = cfg.model_copy(update={"arm": cfg.arm.model_copy(
-            update={"monitor_port": p["meca_monitor_port"]})})
-        async with open_devices(cfg) as d:
-            rt = Runtime(Devices(d.arm, d.ft, d.motor, d.aux),
-                         RuntimeConfig(tool=tool_geometry_of(world), thresholds=LOOSE),
-                         RealTimeClock(0.002), gravity=true_gravity_model(world))
-            wire = await _drag(rt, world)
-            assert rt.state == "idle", rt.treatment.fault_causes
-            assert d.ft.lost == 0
+    async with VirtualDentiBot(world, ports) as bot, open_devices(bot.devices_config()) as d:
+        rt = Runtime(Devices(d.arm, d.ft, d.motor, d.aux),
+                     RuntimeConfig(tool=tool_geometry_of(world), thresholds=LOOSE),
+                     RealTimeClock(0.002), gravity=true_gravity_model(world))
+        wire = await _drag(rt, world)
+        assert rt.state == "idle", rt.treatment.fault_causes
+        assert d.ft.lost == 0
     # same motion within the jitter of real time (a few ticks of 1.2 s) and servo lag
     np.testing.assert_allclose(wire, local, atol=0.08 * abs(local[0]))
