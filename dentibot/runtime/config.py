@@ -124,6 +124,8 @@ class RuntimeConfig:
     handpiece: HandpieceConfig = field(default_factory=HandpieceConfig)
     thresholds: Thresholds = field(default_factory=Thresholds)
     plan: TreatmentPlan = field(default_factory=TreatmentPlan)
+    tcp_points: int = 4                # thesis 3.4: four-point TCP (more when available)
 
     def __post_init__(self) -> None:
         _check("control.period_s", self.period_s, 0.0002, 0.1, "s")
+        _check("calibration.tcp_points", self.tcp_points, 4, 12, "poses (eq 3.23 needs >= 4)")

@@ -23,6 +23,7 @@ acted on by the commands of tick k, not k + 1.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import gc
 import time
 from collections.abc import Callable
@@ -39,7 +40,7 @@ from dentibot.errors import DentibotError, DeviceFault
 from dentibot.io.interfaces import Arm, AuxIO, ForceSensor, Handpiece
 from dentibot.runtime.clock import Clock, DeadlineStats
 from dentibot.runtime.config import RuntimeConfig
-from dentibot.runtime.load_calibration import LoadCalibration
+from dentibot.runtime.load_calibration import LoadCalibration, TcpRoutine
 from dentibot.runtime.strategies import Decision, make_strategy
 from dentibot.runtime.supervisor import Finding, Supervisor
 from dentibot.states.modes import MODES, Mode
@@ -49,6 +50,8 @@ log = structlog.get_logger("dentibot.runtime")
 
 PRESETS = {"dragging": DRAGGING, "self_alignment": SELF_ALIGNMENT}
 _ZERO6 = np.zeros(6)
+#: Events that are recorded but are not triggers of the state machine.
+NOTES = frozenset({"tcp_point", "inputs_invalid"})
 
 
 @dataclass
@@ -128,6 +131,8 @@ class Runtime:
         self._decision = Decision(0.0, 0.0)
         self._decided = -1
         self._align_pd: FeedrateController | None = None
+        self._pedal = self._pedal_prev = False
+        self._tcp: TcpRoutine | None = None
         self._pending: list[tuple[str, str | None]] = []
         self._stop = asyncio.Event()
 
@@ -223,6 +228,9 @@ class Runtime:
         if est is not None and not findings:
             events.extend(self._detect(est))
         for trigger, cause in events:
+            if trigger in NOTES:              # progress worth recording, not a transition
+                self._note(trigger, cause or "")
+                continue
             if trigger == "fault" and tr.state == "fault" and _kind(cause) in {
                     _kind(c) for c in tr.fault_causes}:
                 continue                      # latched already, for this kind of cause
@@ -256,6 +264,7 @@ class Runtime:
             w = await d.ft.read()
             m = await d.motor.read()
             aux = await d.aux.read() if d.aux is not None else None
+            self._pedal = bool(aux.pedal) if aux is not None else False
         except DeviceFault as exc:
             return None, [Finding("device", str(exc))]
         if aux is not None:
@@ -355,6 +364,8 @@ class Runtime:
         elif st == "treating.retracting":
             if est.depth_mm is not None and est.depth_mm <= self.cfg.plan.retract_to_mm:
                 ev.append(("retracted", f"depth {est.depth_mm:.2f} mm"))
+        elif st == "calibrating.tcp":
+            ev.extend(self._tcp_step())
         elif st == "calibrating.load" and self._calib is not None:
             target = self._calib.step(est.q_deg, est.wrench_s, self._R06)
             self._calib_target = target
@@ -368,6 +379,37 @@ class Runtime:
             ev.append(("fault", (f"file torque {tau:.1f} mNm > limit "
                                 f"{th.torque_limit_mnm:.1f} mNm in {st}")))
         return ev
+
+    def _tcp_step(self) -> list[tuple[str, str | None]]:
+        """Calibrating the TCP: each pedal press records the flange pose (the operator holds
+        the file tip on one fixed point); enough poses -> eq 3.21-3.23 -> the new tool tip."""
+        pressed = self._pedal and not self._pedal_prev
+        self._pedal_prev = self._pedal
+        if not pressed:
+            return []
+        cols, o6 = self._kin[1][-1]
+        result = self._tcp.add(np.array(cols).T, np.array(o6))
+        if result is None:
+            return [("tcp_point", f"pose {len(self._tcp.rotations)} recorded")]
+        if isinstance(result, str):
+            if len(self._tcp.rotations) >= self._tcp.max_points:
+                return [("fault", f"TCP calibration: {result}")]
+            return [("tcp_point", f"pose {len(self._tcp.rotations)}: {result}")]
+        self.set_tool_tip(result.p_6_H_mm)
+        return [("calibration_done", (f"TCP {np.round(result.p_6_H_mm, 3).tolist()} mm, "
+                                      f"residual max {result.residual_max_mm:.3f} mm"))]
+
+    def set_tool_tip(self, tip_6_mm) -> None:
+        """Use a new tool tip 6p_H (TCP calibration) from now on: kinematics, the {S}->{H}
+        transforms and the configuration all follow."""
+        tool = dataclasses.replace(self.cfg.tool, tip_6_mm=tuple(float(x) for x in tip_6_mm))
+        self.cfg = dataclasses.replace(self.cfg, tool=tool)
+        T = np.eye(4)
+        T[:3, :3] = self._R_6_H
+        T[:3, 3] = tool.tip_6_mm
+        self.kin.set_tool(T)
+        if self.gravity is not None:
+            self.set_gravity(self.gravity)
 
     # ------------------------------------------------------------------ step 4
     async def _enter(self, state: str, est: Estimate | None) -> None:
@@ -415,6 +457,9 @@ class Runtime:
         if state == "treating.patient_moved":
             self._release_ticks = 0
             self._persist_ticks = 0
+        if state == "calibrating.tcp":
+            self._tcp = TcpRoutine(self.cfg.tcp_points)
+            self._pedal_prev = self._pedal
         if state == "calibrating.load" and est is not None:
             self._calib = LoadCalibration(est.q_deg, self.ts, limits_deg=self.kin.joint_limits_deg)
             self._calib_target = None

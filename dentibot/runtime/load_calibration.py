@@ -1,4 +1,9 @@
-"""The load calibration routine (section 4.2): static poses -> offsets, weight, centroid.
+"""Calibration routines run by the control task.
+
+TCP (section 3.4): the operator holds the file tip on one fixed point in several flange
+orientations and presses the pedal at each; eq 3.21-3.23 give the tool tip 6p_H.
+
+Load (section 4.2): static poses -> offsets, weight, centroid.
 
 Run tick by tick by the control task in ``calibrating.load``: for each wrist pose around the
 start pose, move there (MoveJoints), wait until the joints are within ``tol_deg`` and at rest,
@@ -12,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dentibot.control.calibration import TcpCalibration, calibrate_tcp
 from dentibot.control.wrench import LoadIdentification, identify_load
 from dentibot.errors import DentibotError
 
@@ -99,3 +105,34 @@ class LoadCalibration:
             self.result = identify_load(np.array(self.rotations), w)
         except DentibotError as exc:   # IdentificationError names condition, limit, advice
             self.error = str(exc)
+
+
+class TcpRoutine:
+    """Collects flange poses (one per pedal press) and solves the TCP once there are enough.
+
+    ``add`` returns None (need more), an explanation string (the poses do not determine the
+    tip yet: add more, better spread) or the :class:`TcpCalibration`.
+    """
+
+    def __init__(self, points: int = 4, max_points: int = 12,
+                 max_residual_mm: float = 0.5) -> None:
+        self.points = points
+        self.max_points = max_points
+        # assumption: a hand-held touch-off repeats within 0.5 mm; worse means a pose slipped
+        self.max_residual_mm = max_residual_mm
+        self.rotations: list[np.ndarray] = []
+        self.positions: list[np.ndarray] = []
+
+    def add(self, R_0_6: np.ndarray, p_0_6_mm: np.ndarray) -> TcpCalibration | str | None:
+        self.rotations.append(np.asarray(R_0_6, dtype=float))
+        self.positions.append(np.asarray(p_0_6_mm, dtype=float))
+        if len(self.rotations) < self.points:
+            return None
+        try:
+            result = calibrate_tcp(np.array(self.rotations), np.array(self.positions))
+        except DentibotError as exc:
+            return str(exc)
+        if result.residual_max_mm > self.max_residual_mm:
+            return (f"residual {result.residual_max_mm:.2f} mm > {self.max_residual_mm} mm "
+                    "(a pose slipped off the point): add poses")
+        return result

@@ -211,3 +211,47 @@ async def test_the_depth_limit_retracts_even_if_the_strategy_would_push_on():
     assert rt.state == "treating.retracting"
     assert any("depth_limit" in r["events"] for r in rows)
     assert max(r["depth_mm"] for r in rows) <= 6.5 + 0.05      # one tick of feed past it
+
+
+def _ik_tip_at(world, point, R_target, q0):
+    """Joint angles putting the (true) file tip at ``point`` with orientation ``R_target``."""
+    from scipy.optimize import least_squares
+
+    def res(q):
+        T = world.kin.fk_tool(q)
+        return np.concatenate([T[:3, 3] - point, 50.0 * (T[:3, :3] - R_target).ravel()])
+    sol = least_squares(res, q0, xtol=1e-12, ftol=1e-12)
+    assert np.abs(res(sol.x)[:3]).max() < 1e-6
+    return sol.x
+
+
+async def test_tcp_calibration_by_pedal_presses_finds_the_true_tool_tip():
+    """The runtime starts with a tool 10 mm too short; the operator holds the tip on a fixed
+    point in five orientations and presses the pedal at each (eq 3.21-3.23)."""
+    from scipy.spatial.transform import Rotation
+
+    from dentibot.runtime.config import RuntimeConfig, ToolGeometry
+    from dentibot.runtime.harness import SimHarness
+    from dentibot.sim.world import WorldConfig
+
+    h = SimHarness(WorldConfig(seed=12), RuntimeConfig(tool=ToolGeometry(tip_6_mm=(0, 0, 80.0)),
+                                                      tcp_points=5))
+    rt, w = h.runtime, h.world
+    assert rt.cfg.tool.tip_6_mm == (0, 0, 80.0)
+    T0 = w.kin.fk_tool(w.arm.q)
+    point = T0[:3, 3] + np.array([0.0, 0.0, -5.0])
+    assert await rt.command("calibrate_tcp") is None
+    q = np.array(w.arm.q)
+    for rx, ry in ((0, 0), (15, 0), (-15, 0), (0, 15), (0, -15)):
+        R = T0[:3, :3] @ Rotation.from_euler("xy", [rx, ry], degrees=True).as_matrix()
+        q = _ik_tip_at(w, point, R, q)
+        w.teleport_arm(q)
+        await rt.run(max_ticks=3)
+        w.pedal = True
+        await rt.run(max_ticks=2)
+        w.pedal = False
+        await rt.run(max_ticks=2)
+    assert rt.state == "idle", rt.events_log[-5:]
+    np.testing.assert_allclose(rt.cfg.tool.tip_6_mm, (0.0, 0.0, 90.0), atol=0.05)
+    np.testing.assert_allclose(rt.kin.fk_tool(w.arm.q)[:3, 3], point, atol=0.05)
+    assert sum(e[1] == "tcp_point" for e in rt.events_log) == 4
