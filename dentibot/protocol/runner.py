@@ -108,6 +108,12 @@ def recording_path(p: Protocol, override: str | Path | None = None) -> Path | No
     return Path(p.recording.path or f"runs/{p.name}-{p.seed}.mcap")
 
 
+def _at_rest(rt: Runtime) -> bool:
+    e = rt.last
+    return e is not None and abs(e.motor_rpm) < 1.0 and rt.last_row is not None and \
+        max(abs(x) for x in rt.last_row["qdot_cmd_deg_s"]) == 0.0
+
+
 def step_duration_s(p: Protocol, step_name: str) -> float | None:
     """Planned (simulated) length of step ``"<n>:<kind>"``, None when open-ended."""
     try:
@@ -262,7 +268,8 @@ class ProtocolRunner:
                              max_ticks=round(RETRACT_TIMEOUT_S / rt.ts))
             if rt.state != "fault":
                 await rt.command("stop")
-                await rt.run(max_ticks=1)
+            # record the file and the arm coming to rest (or 1 s of it)
+            await rt.run(until=_at_rest, max_ticks=round(1.0 / rt.ts))
         finally:
             for dev in (rt.dev.motor, rt.dev.arm):
                 try:

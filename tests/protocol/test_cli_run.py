@@ -1,0 +1,59 @@
+"""`dentibot run` as a user runs it: bad input starts nothing; Ctrl-C stops safely and still
+writes the recording and the summary."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from dentibot.cli import main
+from dentibot.telemetry.reader import read_recording
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_a_broken_protocol_is_refused_before_anything_starts(tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: t\nsteps:\n  - drill: {tau_d_mnm: 500, rmp: 60}\n")
+    out = tmp_path / "never.mcap"
+    assert main(["run", str(bad), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"{bad}:3: steps.0.drill.tau_d_mnm: value 500 is out of range: must be < 62" in err
+    assert "steps.0.drill.rmp: unknown key" in err
+    assert not out.exists()
+
+
+@pytest.mark.timeout(120)
+def test_ctrl_c_stops_safely_and_keeps_the_recording(tmp_path):
+    rec = tmp_path / "run.mcap"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "dentibot.cli", "run", "protocols/root-canal.yaml", "--out",
+         str(rec), "--quiet", "--json"], cwd=ROOT, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    # wait until the recording shows drilling has started, then press Ctrl-C
+    deadline = time.monotonic() + 90
+    while time.monotonic() < deadline:
+        time.sleep(0.5)
+        if rec.exists() and any(r["state"].startswith("treating")
+                                for r in read_recording(rec).rows[-50:]):
+            break
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130, stderr[-2000:]
+    summary = json.loads(stdout)
+    assert summary["status"] == "aborted"
+    r = read_recording(rec)
+    assert r.complete and r.status == "aborted"
+    last = r.rows[-1]
+    # the file was withdrawn from the canal and stopped, the arm came to rest
+    assert last["state"] == "idle" and last["true_depth_mm"] < 0.0
+    assert abs(last["motor_rpm"]) < 5.0
+    assert max(abs(x) for x in last["qdot_cmd_deg_s"]) == 0.0
+    ticks = [row["tick"] for row in r.rows]
+    assert ticks == list(range(len(ticks)))
