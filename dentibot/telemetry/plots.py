@@ -178,7 +178,8 @@ def _fig_torque_feed(rec: Recording, fig: Figure) -> str | None:
         ax_tau.axhline(tau_d, color="g", linestyle=":", label=f"tau_d {tau_d:g} mNm")
     ax_tau.set_ylabel("torque (mNm)")
     ax_tau.legend(loc="best")
-    for name, style, label in (("fz_n", "-", "fz (measured)"), ("fz_star_n", "--", "fz* (set)")):
+    for name, style, label in (("fz_n", "-", "fz = sat(fz*), fed to the admittance"),
+                               ("fz_star_n", "--", "fz* (feedrate PD output)")):
         y = rec.column(name)
         good = np.isfinite(t) & np.isfinite(y)
         if good.any():
