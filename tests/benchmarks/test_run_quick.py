@@ -1,0 +1,127 @@
+"""Smoke test of ``benchmarks/run.py``: every piece at tiny sizes, the JSON's keys, and the
+figures that follow from the sizes alone (tick counts, ratios, bytes per minute).
+
+No speed is asserted here (speed belongs in benchmarks/); this only checks that the benchmark
+suite runs and reports what the issue asks for.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
+
+TINY = {"tick_n": 200, "world_n": 200, "lockstep_s": 1.0, "recording_rows": 200,
+        "realtime_s": 1.0, "sleep_s": 0.5, "round_trips": 2, "rates": (500.0,),
+        "profile_s": 0.5}
+
+REQUIRED = ("tick_us_median", "world_step_us_median", "lockstep_speed_factor",
+            "lateness_us_p99_500hz", "overruns_500hz")
+BASELINES = ("tick_numpy_dh_us_median", "tick_numpy_dh_ratio", "tick_rtb_us_median",
+             "tick_rtb_ratio", "jacobian_solve_us_median", "jacobian_solve_numpy_dh_us_median",
+             "lockstep_speed_factor_rows", "lockstep_speed_factor_recorder",
+             "sleep_lateness_us_p99_500hz", "sleep_overruns_500hz", "recording_ticks_per_s",
+             "recording_mb_per_min", "roundtrip_ms_median_arm", "ft_lost_500hz")
+
+
+def _load_run():
+    spec = importlib.util.spec_from_file_location("dentibot_benchmarks_run", BENCH / "run.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod          # dataclasses look their module up
+    spec.loader.exec_module(mod)          # puts benchmarks/ on sys.path for its siblings
+    return mod
+
+
+@pytest.fixture(scope="module")
+def results():
+    path0 = list(sys.path)
+    run = _load_run()
+    try:
+        res = run.collect(run.Sizes(**TINY), profile=True)
+        yield run, res, run.flatten(res)
+    finally:
+        sys.path[:] = path0
+
+
+@pytest.mark.timeout(90)
+def test_json_has_the_issue_keys_and_is_serialisable(results):
+    _, _, flat = results
+    for key in (*REQUIRED, *BASELINES):
+        assert key in flat, key
+    for key in REQUIRED:
+        assert isinstance(flat[key], (int, float)) and math.isfinite(flat[key]), key
+    text = json.dumps(flat)
+    assert json.loads(text)["overruns_500hz"] == flat["overruns_500hz"]
+    assert set(flat["targets_met"]) == set(REQUIRED)
+
+
+def test_ratios_are_baseline_over_ours(results):
+    _, res, flat = results
+    assert flat["tick_numpy_dh_ratio"] == pytest.approx(
+        flat["tick_numpy_dh_us_median"] / flat["tick_us_median"])
+    if res["control"]["rtb_version"] is None:
+        assert flat["rtb_version"] == "not installed" and flat["tick_rtb_ratio"] is None
+    else:
+        assert flat["tick_rtb_ratio"] == pytest.approx(
+            flat["tick_rtb_us_median"] / flat["tick_us_median"])
+    assert res["control"]["full"]["dentibot"]["n"] == TINY["tick_n"]
+    assert res["world"]["n"] == TINY["world_n"]
+
+
+def test_lockstep_counts_follow_from_the_round(results):
+    _, res, flat = results
+    v = res["lockstep"]["variants"]
+    assert set(v) == {"none", "rows", "recorder"}
+    for var in v.values():
+        # 1 s at the protocol's 500 Hz, unless the round ended early
+        assert var["ticks"] == 500 or var["state"] in ("done", "fault")
+        assert var["sim_seconds"] == pytest.approx(var["ticks"] * 0.002)
+        assert var["speed_factor"] == pytest.approx(var["sim_seconds"] / var["wall_s"])
+    rec = v["recorder"]
+    assert rec["ticks_written"] == rec["ticks"] and rec["rows_dropped"] == 0
+    assert rec["bytes_per_min"] == pytest.approx(rec["file_bytes"] / (rec["ticks"] * 0.002 / 60))
+    assert flat["lockstep_speed_factor"] == v["none"]["speed_factor"]
+    assert res["lockstep"]["profile"]["by_own_time"]
+
+
+def test_recording_counts_and_size_per_minute(results):
+    _, res, flat = results
+    for case in res["recording"]["cases"]:
+        assert case["ticks_written"] == TINY["recording_rows"] and case["rows_dropped"] == 0
+        assert case["mb_per_min_500hz"] == pytest.approx(
+            case["file_bytes"] / TINY["recording_rows"] * 500 * 60 / 1e6)
+    sizes = {c["compression"]: c["file_bytes"] for c in res["recording"]["cases"]
+             if not c["validate"]}
+    assert sizes["zstd"] < sizes["none"] and sizes["lz4"] < sizes["none"]
+    assert flat["recording_compression"] == "zstd"
+
+
+def test_realtime_tick_counts_and_lateness_order(results):
+    _, res, flat = results
+    r = res["realtime"]["rates"]["500"]
+    s, sl = r["absolute_deadlines"], r["plain_asyncio_sleep"]
+    assert s["ticks"] == round(TINY["realtime_s"] * 500)
+    assert sl["ticks"] == round(TINY["sleep_s"] * 500)
+    for stats in (s, sl):
+        ex = stats["lateness_us_exact"]
+        assert 0.0 <= ex["p50"] <= ex["p99"] <= ex["max"]
+        assert sum(stats["histogram_us"].values()) == stats["ticks"]
+    assert flat["lateness_us_p99_500hz"] == s["lateness_us_exact"]["p99"]
+    assert set(res["realtime"]["round_trips"]) == {"arm", "handpiece", "ft_bias",
+                                                   "aux_platform"}
+    assert res["load_average_before"] is None or len(res["load_average_before"]) == 3
+
+
+def test_the_table_prints(results, capsys):
+    run, res, flat = results
+    run.print_table(res, flat)
+    out = capsys.readouterr().out
+    for figure in ("control tick", "world step", "lock-step", "500 Hz lateness", "recording",
+                   "round trips"):
+        assert figure in out
