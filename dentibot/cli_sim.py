@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import gc
 
 from dentibot.sim.serve import ServePorts, VirtualDentiBot
 from dentibot.sim.world import WorldConfig
@@ -19,6 +20,9 @@ async def _serve(args: argparse.Namespace) -> None:
                        netft_http_port=args.netft_http_port, modbus_port=args.modbus_port,
                        can_port=args.can_port)
     async with VirtualDentiBot(WorldConfig(seed=args.seed, motion=args.motion), ports) as bot:
+        # Everything built so far leaves the collector's view: a full collection over it took
+        # 35-85 ms under load, long enough for the F/T stream to look stale to a driver.
+        gc.freeze()
         p = bot.ports
         print(f"virtual DentiBot on {p['host']}: Meca500 tcp/{p['meca_port']} (monitoring "
               f"tcp/{p['meca_monitor_port']}), Net F/T udp/{p['netft_port']} (http "
