@@ -55,7 +55,8 @@ def _line_of(node, loc: tuple) -> int | None:
     return line
 
 
-def _describe(err: dict) -> str:
+def describe_error(err: dict) -> str:
+    """One pydantic error as text: the value and the allowed range, choices or type."""
     ctx = err.get("ctx") or {}
     value = err.get("input")
     kind = err["type"]
@@ -92,7 +93,7 @@ def parse_protocol(text: str, path: str = "<protocol>") -> Protocol:
         for err in exc.errors():
             loc = tuple(x for x in err["loc"] if not (isinstance(x, str) and "[" in x))
             field = ".".join(str(x) for x in loc) or "protocol"
-            problems.append((_line_of(root, loc), field, _describe(err)))
+            problems.append((_line_of(root, loc), field, describe_error(err)))
         raise ProtocolFileError(path, problems) from None
 
 

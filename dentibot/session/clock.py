@@ -1,0 +1,251 @@
+"""Clocks of the interactive session, and the gate between two control ticks.
+
+The session's control task runs all the time (from ``connect`` to ``quit``) in the same event
+loop as the terminal UI. Operator commands must not reach the state machine in the middle of a
+tick: the machine (transitions' asyncio machine) yields inside ``fire`` and cancels a
+transition that is still running when another one starts. So every command goes through a
+:class:`TickGate`: it is queued and executed by the control task itself between two ticks
+(after tick k, before tick k + 1), and the next tick applies the new state's entry actions, as
+in a protocol run. The gate also wakes whoever waits for a condition on the runtime (a timed
+step, a safe stop) after each tick.
+
+Clocks (every one wrapped in :class:`GatedClock`):
+
+- :class:`PacedSimClock`: the built-in simulator in real time: the world steps once per tick
+  (lock-step causality, as in :class:`~dentibot.runtime.clock.LockStepClock`) and the tick
+  then waits for its wall-clock deadline (:class:`~dentibot.runtime.clock.RealTimeClock`'s
+  waiting, inherited, not copied).
+- :class:`~dentibot.runtime.clock.LockStepClock` (reused as it is): as fast as the machine
+  allows.
+- :class:`SteppedClock`: lock-step time that advances only by the ticks granted to it
+  (``grant``), serving the gate while it waits: tests drive the terminal UI and the simulated
+  time separately, deterministically.
+- real devices: :class:`~dentibot.runtime.clock.RealTimeClock`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import math
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+from dentibot.errors import DentibotError
+from dentibot.runtime.clock import Clock, RealTimeClock
+
+
+class GateClosed(DentibotError):
+    """The control task is not running (not connected, stopped, or died)."""
+
+
+class TickGate:
+    """Work done by the control task between two ticks (see the module docstring)."""
+
+    def __init__(self) -> None:
+        self.runtime: Any = None
+        self._actions: collections.deque = collections.deque()
+        self._waiters: list[list] = []
+        self._closed: str | None = None
+        #: called when work is submitted (a held clock wakes up to serve it)
+        self.on_submit: Callable[[], None] | None = None
+
+    @property
+    def closed(self) -> str | None:
+        """Why the gate is closed (None while the control task serves it)."""
+        return self._closed
+
+    def open(self, runtime) -> None:
+        self.runtime = runtime
+        self._closed = None
+
+    def submit(self, action: Callable[[], Awaitable[Any]]) -> asyncio.Future:
+        """Run ``await action()`` between two ticks; the future gets its result."""
+        if self._closed is not None:
+            raise GateClosed(self._closed)
+        fut = asyncio.get_running_loop().create_future()
+        self._actions.append((action, fut))
+        if self.on_submit is not None:
+            self.on_submit()
+        return fut
+
+    def wait(self, until: Callable[[Any], bool] | None = None,
+             max_ticks: int | None = None,
+             on_done: Callable[[], None] | None = None) -> asyncio.Future:
+        """A future done after the first tick where ``until(runtime)`` holds or after
+        ``max_ticks`` ticks (counted from now), like ``Runtime.run(until, max_ticks)``.
+        ``on_done()`` is called by the control task in that very tick's slack."""
+        if self._closed is not None:
+            raise GateClosed(self._closed)
+        fut = asyncio.get_running_loop().create_future()
+        self._waiters.append([fut, until, max_ticks, 0, on_done])
+        return fut
+
+    def call_after(self, ticks: int, fn: Callable[[], None]) -> None:
+        """Call ``fn()`` in the control task's slack after ``ticks`` more ticks (nobody
+        waits: e.g. releasing a simulated pedal press)."""
+        if self._closed is not None:
+            raise GateClosed(self._closed)
+        self._waiters.append([None, None, ticks, 0, fn])
+
+    @property
+    def pending(self) -> bool:
+        return bool(self._actions)
+
+    def after_tick(self) -> bool:
+        """Check the waiters after a tick; True when one of them was woken."""
+        woke = False
+        keep = []
+        for w in self._waiters:
+            fut, until, max_ticks = w[0], w[1], w[2]
+            if fut is not None and fut.done():   # its waiter was cancelled
+                continue
+            w[3] += 1
+            try:
+                hit = (max_ticks is not None and w[3] >= max_ticks) or (
+                    until is not None and until(self.runtime))
+            except Exception as exc:  # noqa: BLE001 - the waiter's problem, not the tick's
+                if fut is not None:
+                    fut.set_exception(exc)
+                continue
+            if hit:
+                if fut is not None:
+                    fut.set_result(None)
+                    woke = True
+                if w[4] is not None:
+                    w[4]()
+            else:
+                keep.append(w)
+        self._waiters = keep
+        return woke
+
+    async def run_actions(self) -> None:
+        while self._actions:
+            action, fut = self._actions.popleft()
+            if fut.done():                  # cancelled by its caller before it ran
+                continue
+            try:
+                result = await action()
+            except Exception as exc:  # noqa: BLE001 - reported to the caller, the loop goes on
+                if not fut.done():
+                    fut.set_exception(exc)
+            else:
+                if not fut.done():
+                    fut.set_result(result)
+
+    async def between(self) -> None:
+        if self.after_tick():
+            # let the woken waiter run now (e.g. a timed step ending: its scripted hand
+            # force is released and its next command queued before the next tick, exactly
+            # as Runtime.run returning after max_ticks)
+            await asyncio.sleep(0)
+        await self.run_actions()
+
+    def close(self, why: str) -> None:
+        """No more ticks: fail what is queued and waiting."""
+        self._closed = why
+        while self._actions:
+            _, fut = self._actions.popleft()
+            if not fut.done():
+                fut.set_exception(GateClosed(why))
+        for w in self._waiters:
+            if w[0] is None:
+                if w[4] is not None:
+                    w[4]()                  # e.g. release a pedal: never leave it pressed
+            elif not w[0].done():
+                w[0].set_exception(GateClosed(why))
+        self._waiters = []
+
+
+class GatedClock(Clock):
+    """``inner`` with the gate's work done before each wait (in the slack of the tick)."""
+
+    def __init__(self, inner: Clock, gate: TickGate) -> None:
+        self.inner = inner
+        self.gate = gate
+        self.period_s = inner.period_s
+        self.realtime = inner.realtime
+
+    @property
+    def skipped(self) -> int:
+        return getattr(self.inner, "skipped", 0)
+
+    def start(self) -> None:
+        self.inner.start()
+
+    def now(self) -> float:
+        return self.inner.now()
+
+    async def wait_next(self) -> float:
+        await self.gate.between()
+        return await self.inner.wait_next()
+
+
+class PacedSimClock(RealTimeClock):
+    """The built-in simulator in real time: one world step per tick, then the deadline."""
+
+    def __init__(self, step: Callable[[], None], period_s: float = 0.002, **kw) -> None:
+        super().__init__(period_s, **kw)
+        self._step = step
+
+    async def wait_next(self) -> float:
+        self._step()
+        return await super().wait_next()
+
+
+class SteppedClock(Clock):
+    """Lock-step time that advances only by granted ticks; serves the gate while held.
+
+    ``grant(n)`` lets ``n`` more ticks run (as fast as the machine allows); ``release()``
+    lets them run freely from then on (as :class:`~dentibot.runtime.clock.LockStepClock`).
+    """
+
+    realtime = False
+
+    def __init__(self, step: Callable[[], None], gate: TickGate, period_s: float = 0.002,
+                 yield_every: int = 10) -> None:
+        self.period_s = period_s
+        self._step = step
+        self._gate = gate
+        self._yield_every = max(1, int(yield_every))
+        self._credits = 0.0
+        self._wake = asyncio.Event()
+        self.skipped = 0
+        gate.on_submit = self._wake.set
+        self.start()
+
+    def start(self) -> None:
+        self._k = 0
+
+    def now(self) -> float:
+        return self._k * self.period_s
+
+    def grant(self, ticks: int) -> None:
+        self._credits += ticks
+        self._wake.set()
+
+    def hold(self) -> None:
+        """No more ticks until the next grant (unless released)."""
+        if self._credits != math.inf:
+            self._credits = 0
+
+    def release(self) -> None:
+        self._credits = math.inf
+        self._wake.set()
+
+    @property
+    def held(self) -> bool:
+        return self._credits <= 0
+
+    async def wait_next(self) -> float:
+        while self._credits <= 0:
+            self._wake.clear()
+            if not self._gate.pending:
+                await self._wake.wait()
+            await self._gate.run_actions()
+        self._credits -= 1
+        self._step()
+        self._k += 1
+        if self._k % self._yield_every == 0:
+            await asyncio.sleep(0)
+        return 0.0

@@ -1,0 +1,268 @@
+"""The session without its screen: the gate between ticks, the clocks, steps, recording,
+refusals, and the real-time clock on the built-in simulator."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+import pytest
+
+from dentibot.control.admittance import DRAGGING
+from dentibot.protocol.loader import parse_protocol
+from dentibot.runtime.clock import RealTimeClock
+from dentibot.session.clock import GateClosed, SteppedClock, TickGate
+from dentibot.session.controller import SessionController, SessionOptions
+from dentibot.telemetry.reader import read_recording
+from dentibot.telemetry.summary import summarize_file
+
+
+async def say(c: SessionController, line: str):
+    replies = await c.execute(line)
+    assert len(replies) == 1, replies
+    return replies[0]
+
+
+# ------------------------------------------------------------------ gate and clocks
+async def test_gate_runs_actions_between_ticks_in_order_and_counts_waits_exactly():
+    gate = TickGate()
+    steps = []
+    clock = SteppedClock(lambda: steps.append(len(steps)), gate)
+    gate.open(runtime=None)
+    ran = []
+
+    async def loop():
+        for _ in range(50):          # what Runtime.run does: tick, then wait for the next
+            await gate.between()
+            await clock.wait_next()
+
+    task = asyncio.create_task(loop())
+    # held: no step, but the actions are served, in the order submitted
+    a = gate.submit(lambda: _record(ran, "a"))
+    b = gate.submit(lambda: _record(ran, "b"))
+    assert await a == "a" and await b == "b" and ran == ["a", "b"] and steps == []
+    w = gate.wait(max_ticks=7, on_done=clock.hold)
+    clock.grant(100)
+    await w
+    assert len(steps) == 7                 # held again in the very tick the wait ended
+    for _ in range(5):
+        await asyncio.sleep(0)
+    assert len(steps) == 7
+    clock.release()
+    await task
+    assert len(steps) == 50
+    gate.close("test over")
+    with pytest.raises(GateClosed):
+        gate.submit(lambda: _record(ran, "c"))
+
+
+async def _record(ran, x):
+    ran.append(x)
+    return x
+
+
+async def test_the_session_clock_for_the_simulator_in_real_time_is_a_realtime_clock(tmp_path):
+    c = SessionController(SessionOptions(clock="realtime", calibrated=True, record_dir=tmp_path))
+    assert (await say(c, "connect")).kind == "ok"
+    try:
+        assert isinstance(c.clock, RealTimeClock) and c.runtime.clock.realtime
+        assert c.runtime.stats.deadlines                  # lateness and overruns counted
+        w0 = c.world.steps
+        for _ in range(500):
+            await asyncio.sleep(0.01)
+            if c.runtime.ticks > 20:
+                break
+        assert c.runtime.ticks > 20
+        assert c.world.steps - w0 >= c.runtime.ticks - 2   # the world steps once per tick
+        assert (await say(c, "drag")).kind == "ok"
+        assert c.state == "dragging"
+    finally:
+        await c.shutdown()
+    assert c.closed and c.state == "idle"
+
+
+# ------------------------------------------------------------------ refusals
+async def test_refusals_name_the_state_and_what_is_needed(stepped):
+    c = stepped
+    r = await say(c, "drill")
+    assert r.kind == "refused" and "not connected" in r.text and "'connect'" in r.text
+    await say(c, "connect")
+    r = await say(c, "pause")
+    assert r.kind == "refused"
+    assert r.text == ("'pause' refused in state 'idle': it needs state treating.drilling or "
+                      "treating.patient_moved or treating.retracting")
+    r = await say(c, "align")
+    assert r.kind == "refused" and "needs a load calibration (calibrate load)" in r.text
+    r = await say(c, "drill tau_d=70")
+    assert r.kind == "error" and "drill.tau_d_mnm: value 70 is out of range" in r.text
+    # nothing moved and nothing changed
+    assert c.state == "idle" and c.world.handpiece.cmd_rpm == 0.0
+    await say(c, "quit")
+
+
+async def test_a_refused_drill_leaves_the_running_strategy_alone(stepped):
+    c = stepped
+    c.opt.calibrated = True
+    await say(c, "connect")
+    await say(c, "align")
+    await c.advance(0.6)
+    assert (await say(c, "drill tau_d=40")).kind == "ok"
+    await c.advance(0.5)
+    strategy = c.runtime.strategy
+    r = await say(c, "drill tau_d=20 strategy=none")
+    # the machine refuses it while treating: the running pass goes on as it was
+    assert r.kind == "refused" and "in state 'treating.drilling" in r.text
+    assert c.runtime.strategy is strategy and strategy.p.feedrate.tau_d_mnm == 40
+    assert c._activity_name == "drill" and c.runtime.cfg.handpiece.drilling_rpm == 60
+    await say(c, "quit")
+
+
+# ------------------------------------------------------------------ steps
+async def test_step_drag_moves_the_arm_with_the_dragging_admittance(stepped):
+    c = stepped
+    c.opt.calibrated = True
+    await say(c, "connect")
+    y0 = c.world.tip_0[1]
+    r = await say(c, "step drag duration_s=0.2 hand_force_n=0,0.5,0")
+    assert r.kind == "ok" and c.state == "dragging"
+    await c.advance(0.25)
+    dy = c.world.tip_0[1] - y0
+    # the arm accelerates from rest towards v = k f / b (Table 4.3 dragging: 18.75 mm/s/N):
+    # it cannot have moved more than v * t, and does not lag by more than a few tens of ms
+    v = DRAGGING.k * 0.5 / DRAGGING.b[1]
+    assert 0.5 * v * 0.2 < dy < 1.02 * v * 0.2
+    assert c.world.hand_force_0 == (0.0, 0.0, 0.0)          # the scripted hand let go
+    while c.messages:
+        _, text = c.messages.popleft()
+    assert "step drag: finished in state dragging" in text
+    await say(c, "quit")
+
+
+async def test_step_n_runs_the_protocols_step(tmp_path):
+    p = parse_protocol("name: p\nseed: 3\nsteps:\n  - calibrate_load: {}\n"
+                       "  - align: {duration_s: 0.5, fz_n: 1.0}\n")
+    c = SessionController(SessionOptions(protocol=p, clock="stepped", record_dir=tmp_path))
+    await say(c, "connect")
+    assert (await say(c, "step 3")).kind == "error"
+    assert (await say(c, "step 1")).kind == "ok"
+    await c.advance(60.0, until=lambda r: r.state == "idle")
+    assert c.runtime.treatment.gravity_known
+    assert (await say(c, "step 2")).kind == "ok" and c.state == "self_aligning"
+    await c.advance(0.6)
+    assert c.state == "self_aligning" and c._activity_name is None     # 0.5 s step is over
+    await say(c, "quit")
+
+
+async def test_retract_ends_a_multi_round_drill(stepped):
+    c = stepped
+    c.opt.calibrated = True
+    await say(c, "connect")
+    await say(c, "align")
+    await c.advance(0.6)
+    assert (await say(c, "drill rounds=[60,40]")).kind == "ok"
+    assert c.runtime.treatment.passes_left > 0
+    await c.advance(1.0)
+    assert (await say(c, "retract")).kind == "ok"
+    assert c.runtime.treatment.passes_left == 0 and c._activity_name is None
+    await c.advance(30.0, until=lambda r: r.state == "done")
+    assert c.state == "done"                      # not another pass
+    await say(c, "quit")
+
+
+# ------------------------------------------------------------------ TCP calibration
+def _tip_at(world, point, R, q0):
+    """Joint angles putting the simulated (true) file tip at ``point`` with orientation R."""
+    from scipy.optimize import least_squares
+
+    def res(q):
+        T = world.kin.fk_tool(q)
+        return np.concatenate([T[:3, 3] - point, 50.0 * (T[:3, :3] - R).ravel()])
+
+    return least_squares(res, q0, xtol=1e-12, ftol=1e-12).x
+
+
+async def test_calibrate_tcp_with_pedal_presses_finds_the_true_tip(stepped):
+    """The runtime's tool is 10 mm too short; the operator (the test, moving the simulated
+    arm) holds the tip on one point in four orientations and presses the pedal at each:
+    eq 3.21-3.23 give back the simulator's true tip, 90 mm along the flange z."""
+    from scipy.spatial.transform import Rotation
+
+    c = stepped
+    await say(c, "connect")
+    c.runtime.set_tool_tip((0.0, 0.0, 80.0))
+    w = c.world
+    r = await say(c, "calibrate tcp")
+    assert r.kind == "ok" and c.state == "calibrating.tcp" and "press 'pedal'" in r.text
+    T0 = w.kin.fk_tool(w.arm.q)
+    point = T0[:3, 3] + np.array([0.0, 0.0, -5.0])
+    q = np.array(w.arm.q)
+    for rx, ry in ((0, 0), (15, 0), (0, 15), (-12, -12)):
+        q = _tip_at(w, point, T0[:3, :3] @ Rotation.from_euler(
+            "xy", [rx, ry], degrees=True).as_matrix(), q)
+        w.teleport_arm(q)
+        await c.advance(ticks=3)
+        assert (await say(c, "pedal")).kind == "ok"
+        await c.advance(ticks=5)
+        assert not w.pedal                                 # released by itself
+    assert c.state == "idle", list(c.messages)
+    np.testing.assert_allclose(c.runtime.cfg.tool.tip_6_mm, (0.0, 0.0, 90.0), atol=0.05)
+    events = [text for _, text in c.messages]
+    assert sum("tcp_point" in e for e in events) == 3 and "calibration_done: TCP" in events[-1]
+    await say(c, "quit")
+
+
+# ------------------------------------------------------------------ recording
+async def test_record_start_stop_writes_every_tick_and_the_events(stepped, tmp_path):
+    c = stepped
+    c.opt.calibrated = True
+    await say(c, "connect")
+    await c.advance(0.1)
+    path = tmp_path / "s.mcap"
+    assert (await say(c, f"record start {path}")).kind == "ok"
+    assert (await say(c, "record start")).kind == "info"          # one at a time
+    await say(c, "align")
+    await c.advance(0.4)
+    await say(c, "stop")
+    await c.advance(0.1)
+    r = await say(c, "record stop")
+    assert r.kind == "ok" and "250 ticks" in r.text               # 0.5 s at 500 Hz
+    rec = read_recording(path)
+    assert rec.complete and rec.status == "ok" and rec.metadata["session"] is True
+    ticks = [row["tick"] for row in rec.rows]
+    assert len(ticks) == 250 and ticks == list(range(ticks[0], ticks[0] + 250))
+    assert {row["step"] for row in rec.rows} >= {"1:align"}
+    kinds = [e["kind"] for e in rec.events]
+    assert "command" in kinds
+    s = summarize_file(path)
+    assert s.status == "ok" and round(s.duration_s, 3) == 0.5
+    await say(c, "quit")
+
+
+# ------------------------------------------------------------------ devices
+@pytest.mark.timeout(60)
+async def test_devices_over_the_wire_connect_refuse_estop_and_close_everything():
+    from dentibot.sim.serve import ServePorts, VirtualDentiBot
+    from dentibot.sim.world import World, WorldConfig
+
+    # loopback on a shared machine: a few late samples are not a stale stream
+    p = parse_protocol("name: wire\nlimits: {stale_periods: {arm: 25, ft: 25, motor: 50, "
+                       "aux: 100}}\nsteps:\n  - calibrate_load: {}\n")
+    world = World(WorldConfig(seed=5))
+    ports = ServePorts(meca_port=0, netft_port=0, netft_http_port=0, modbus_port=0, can_port=0)
+    async with VirtualDentiBot(world, ports) as bot:
+        c = SessionController(SessionOptions(protocol=p, devices=bot.devices_config()))
+        try:
+            r = await say(c, "connect")
+            assert r.kind == "ok" and "devices (arm 127.0.0.1" in r.text
+            assert c.state == "idle" and c.runtime.clock.realtime and c.world is None
+            # no gravity model on real devices until the load is calibrated
+            r = await say(c, "align")
+            assert r.kind == "refused" and "needs a load calibration" in r.text
+            r = await say(c, "estop")
+            assert r.kind == "ok" and c.state == "fault"
+            assert c.runtime.treatment.fault_causes[-1] == "software emergency stop"
+            assert world.handpiece.cmd_rpm == 0.0
+            assert (await say(c, "reset")).kind == "ok" and c.state == "idle"
+        finally:
+            r = await c.shutdown()
+        assert "devices closed" in r.text and c.closed
