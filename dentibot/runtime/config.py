@@ -74,6 +74,10 @@ class Thresholds:
     axial_force_limit_n: float = 3.0
     # assumption: past the working length by more than this (depth estimate) -> retract.
     depth_margin_mm: float = 0.5
+    # assumption: alignment may rest the file on the canal bottom (the phantoms' apical
+    # constriction is 0.5 mm past the working length; thesis experiment 1 inserts until the
+    # file meets it), so its bound is 1.0 mm past the working length -> fault.
+    align_depth_margin_mm: float = 1.0
     supervisor: SupervisorLimits = field(default_factory=SupervisorLimits)
     # Freshness bound per stream, in control periods (stale -> fault).
     stale_periods: dict = field(default_factory=lambda: {

@@ -313,10 +313,10 @@ class Runtime:
         ev: list[tuple[str, str | None]] = []
         tau = est.file_torque_mnm
         if st == "self_aligning" and est.depth_mm is not None and \
-                est.depth_mm > self.cfg.plan.working_length_mm + th.depth_margin_mm:
+                est.depth_mm > self.cfg.plan.working_length_mm + th.align_depth_margin_mm:
             return [("fault", (f"depth_limit: depth {est.depth_mm:.2f} mm during alignment > "
                                f"working length {self.cfg.plan.working_length_mm} + "
-                               f"{th.depth_margin_mm} mm"))]
+                               f"{th.align_depth_margin_mm} mm"))]
         if st.startswith("treating.drilling"):
             if est.force_norm_n > th.patient_moved_n:
                 self.patient_episodes += 1

@@ -259,11 +259,13 @@ async def test_tcp_calibration_by_pedal_presses_finds_the_true_tool_tip():
 
 async def test_alignment_left_running_stops_at_the_depth_limit():
     """An open-ended self-alignment pushes the file in at 6.25 mm/s per N; past the working
-    length + 0.5 mm (depth estimate) the supervisor stops everything (latched fault)."""
-    h, rows = harness(seed=13, canal=CanalParams(working_length_mm=6.0),
+    length + 1.0 mm (depth estimate) the supervisor stops everything (latched fault). The
+    canal's bottom is 0.5 mm past the working length, so the WL here is set 1 mm short of
+    the canal's to let the push reach the limit."""
+    h, rows = harness(seed=13, canal=CanalParams(working_length_mm=8.0),
                       plan=TreatmentPlan(working_length_mm=6.0, orifice_gap_mm=2.0))
     rt = h.runtime
     await rt.command("align")
     await rt.run(until=lambda r: r.state == "fault", max_ticks=20_000)
     assert rt.state == "fault" and "depth_limit" in rt.treatment.fault_causes[0]
-    assert max(r["depth_mm"] for r in rows) <= 6.5 + 0.05
+    assert max(r["depth_mm"] for r in rows) <= 7.0 + 0.05
