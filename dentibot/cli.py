@@ -85,7 +85,7 @@ def _configure_logging(args: argparse.Namespace) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from dentibot import cli_run, cli_selftest, cli_session, cli_sim
+    from dentibot import cli_experiment, cli_run, cli_selftest, cli_session, cli_sim
 
     parser = argparse.ArgumentParser(prog="dentibot", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"dentibot {__version__}")
@@ -96,6 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command")
     cli_run.add_parser(sub)
     cli_sim.add_parser(sub)
+    cli_experiment.add_parser(sub)
     cli_session.add_parser(sub)
     cli_selftest.add_parser(sub)
     fk = sub.add_parser("fk", help="flange pose of the Meca500 for six joint angles (deg)")

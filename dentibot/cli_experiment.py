@@ -1,0 +1,422 @@
+"""``dentibot experiment alignment|preclinical``: the thesis's chapter-6 experiments on the
+built-in simulator, in lock-step simulated time, with the thesis's numbers alongside.
+
+- ``alignment [--config A|B|C|all]``: experiment 1 (Table 6.4, fig 6.7-6.16);
+- ``preclinical [--strategy automated|feedrate|reversal|none]``: experiment 2 (Table 6.5)
+  and its ablations.
+
+``--seeds N --workers W`` runs N seeded patients / phantom sets in W local processes and
+reports medians and worst cases. ``--json`` prints one JSON object (progress goes to stderr).
+Figures (PNG) go to ``--out`` (default runs/experiments/<experiment>).
+Exit status: 0 every claim of the issue shown (an ablation claims none), 1 a claim not
+shown (the table says which), 2 bad input, 130 aborted (Ctrl-C).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+from rich.console import Console
+from rich.table import Table
+
+from dentibot.experiments import alignment as al
+from dentibot.experiments import preclinical as pc
+from dentibot.experiments.common import default_workers, run_all
+
+
+def _f(x, fmt="{:.2f}", none="--") -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return none
+    return fmt.format(x)
+
+
+def _console() -> Console:
+    """stdout; a pipe or file gets wide lines rather than rich's 80 columns."""
+    return Console() if sys.stdout.isatty() else Console(width=160)
+
+
+def _progress(console: Console | None, text: str) -> None:
+    if console is not None:
+        console.print(text, soft_wrap=True, highlight=False)
+
+
+def _checks_table(checks) -> Table:
+    t = Table(title="What the issue asks to show", show_lines=False)
+    t.add_column("claim")
+    t.add_column("shown", justify="center")
+    t.add_column("figures")
+    for c in checks:
+        t.add_row(c.claim, "[green]yes[/]" if c.passed else "[red]no[/]", c.detail)
+    return t
+
+
+def _clean(obj):
+    """JSON-safe: non-finite floats (a run that ended early has none to give) as null."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    return obj
+
+
+def _worst(values) -> float | None:
+    vals = [v for v in values if v is not None and math.isfinite(v)]
+    return max(vals) if vals else None
+
+
+def _seeds(args) -> list[int]:
+    return list(range(args.seed, args.seed + args.seeds))
+
+
+# ---------------------------------------------------------------------------- alignment
+def _alignment_tables(runs: dict[str, list[al.AlignmentRun]]) -> list[Table]:
+    single = all(len(rs) == 1 for rs in runs.values())
+    tables = []
+    if single:
+        t = Table(title="Experiment 1: relative distance handpiece-root (mm, base axes, from "
+                        "the square's start) and detachments along the insertion axis")
+        for col in ("config", "speed mm/s", "max |x|", "max |y|", "max |z|", "rms x / y / z",
+                    "peak out", "law", "detach.", "recovery s"):
+            t.add_column(col, justify="right")
+        for cfg, (r,) in sorted(runs.items()):
+            for s in r.speeds:
+                rec = [d.recovery_s for d in s.detachments]
+                t.add_row(cfg, f"{s.speed_mm_s:g}", *(_f(s.max_rel_mm[a]) for a in "xyz"),
+                          " / ".join(_f(s.rms_rel_mm[a]) for a in "xyz"), _f(s.max_out_mm),
+                          _f(s.expected_ripple_mm), str(len(s.detachments)),
+                          ", ".join(_f(x, none="not yet") for x in rec) or "--")
+            rec = [d.recovery_s for d in r.detachments]
+            t.add_row(f"[bold]{cfg}[/]", "all", *(_f(r.max_rel_mm[a]) for a in "xyz"),
+                      " / ".join(_f(r.rms_rel_mm[a]) for a in "xyz"), _f(r.max_out_mm), "",
+                      str(len(r.detachments)),
+                      _f(max((x for x in rec if x is not None), default=None)),
+                      end_section=True)
+        tables.append(t)
+        return tables
+    t = Table(title="Experiment 1 over a population: median / worst (mm, s)")
+    for col in ("config", "n (not ok)", "max |x|", "max |y|", "max |z|", "speed mm/s",
+                "peak out", "law", "detach.", "recovery s", "not recovered"):
+        t.add_column(col, justify="right")
+    for cfg, rs in sorted(runs.items()):
+        p = al.population_summary(rs)
+        if "speeds" not in p:
+            t.add_row(cfg, str(p["n"]), "every run ended before the square", end_section=True)
+            continue
+        mr = p["max_rel_mm"]
+        head = [cfg, f"{p['n']} ({p['not_ok']})",
+                *(f"{_f(mr[a]['median'])} / {_f(mr[a]['worst'])}"
+                                    for a in "xyz")]
+        for k, s in enumerate(p["speeds"]):
+            row = head if k == 0 else [""] * len(head)
+            t.add_row(*row, f"{s['speed_mm_s']:g}",
+                      f"{_f(s['max_out_mm']['median'])} / {_f(s['max_out_mm']['worst'])}",
+                      _f(al.expected_ripple_mm(cfg, s["speed_mm_s"])),
+                      f"{_f(s['detachments']['median'], '{:g}')} / "
+                      f"{_f(s['detachments']['worst'], '{:g}')}",
+                      f"{_f(s['recovery_s']['median'])} / {_f(s['recovery_s']['worst'])}",
+                      str(s["not_recovered"]), end_section=k == len(p["speeds"]) - 1)
+    tables.append(t)
+    return tables
+
+
+def _alignment_json(runs, checks, figures, wall_s, args) -> dict:
+    configs = {}
+    for cfg, rs in sorted(runs.items()):
+        entry = {"max_rel_mm": {a: _worst(r.max_rel_mm[a] for r in rs) for a in "xyz"},
+                 "rms_rel_mm": {a: _worst(r.rms_rel_mm[a] for r in rs) for a in "xyz"}}
+        if len(rs) == 1:
+            entry.update(rs[0].to_dict())
+        else:
+            entry["population"] = al.population_summary(rs)
+            entry["runs"] = [r.to_dict() for r in rs]
+        configs[cfg] = entry
+    return {
+        "experiment": "alignment", "seeds": _seeds(args), "configs": configs,
+        "definitions": {
+            "relative_distance": "(file tip - orifice) minus its value at the square's start, "
+                                 "base-frame x, y, z (mm); max of |.| and RMS over the square "
+                                 "and the tail; with a population, max_rel_mm is the worst case",
+            "detachment": f"the tip more than {al.DETACH_START_MM} mm out of its seated "
+                          "position along the file axis (at the square's start), until back "
+                          f"within {al.DETACH_END_MM} mm; recovery_s from the peak",
+            "expected_ripple_mm": "admittance law: 15 mm x (1 - k fz_max / (b3 v))",
+        },
+        "thesis": al.THESIS, "checks": [c.to_dict() for c in checks],
+        "figures": [str(p) for p in figures], "wall_s": wall_s,
+    }
+
+
+def cmd_alignment(args: argparse.Namespace) -> int:
+    configs = list(al.CONFIGS) if args.config == "all" else [args.config]
+    seeds = _seeds(args)
+    console = None if args.quiet else Console(file=sys.stderr)
+    specs = [al.AlignmentSpec(config=c, seed=s, speeds_mm_s=args.speeds,
+                              patient=None if len(seeds) == 1 else al.variation(s),
+                              keep_series=not args.no_figures and s == seeds[0])
+             for c in configs for s in seeds]
+    started = time.perf_counter()
+
+    def done(spec, run) -> None:
+        _progress(console, f"config {spec.config} seed {spec.seed}: {run.status}, max |x| "
+                           f"{run.max_rel_mm['x']:.2f} mm, peak out {run.max_out_mm:.2f} mm "
+                           f"({run.wall_s:.0f} s)")
+
+    try:
+        results = run_all(al.run_alignment, specs, workers=args.workers, done=done)
+    except KeyboardInterrupt:
+        print("aborted", file=sys.stderr)
+        return 130
+    wall = time.perf_counter() - started
+    runs: dict[str, list[al.AlignmentRun]] = {}
+    for r in results:
+        runs.setdefault(r.spec.config, []).append(r)
+    figures = []
+    if not args.no_figures:
+        from dentibot.experiments.figures import alignment_figures, ripple_figure
+
+        out = Path(args.out or "runs/experiments/alignment")
+        for rs in runs.values():
+            figures += alignment_figures(rs[0], out)
+        rip = ripple_figure(runs, out)
+        if rip is not None:
+            figures.append(rip)
+    checks = al.checks(runs)
+    if args.json:
+        print(json.dumps(_clean(_alignment_json(runs, checks, figures, wall, args)), indent=1))
+    else:
+        con = _console()
+        for t in _alignment_tables(runs):
+            con.print(t)
+        con.print(f"detachment: the tip more than {al.DETACH_START_MM} mm out of its seated "
+                  f"position along the file axis, until back within {al.DETACH_END_MM} mm; "
+                  "recovery counted from the peak. law: what the admittance law predicts "
+                  "(15 mm x (1 - k fz_max / (b3 v))). Thesis: X, Y within about 3 mm; config C "
+                  "about 5 mm at 6 mm/s, back within about 5 s.")
+        for r in results:
+            if r.status != "ok":
+                con.print(f"[red]config {r.spec.config} seed {r.spec.seed}: {r.status}[/] "
+                          f"{r.reason}")
+        con.print(_checks_table(checks))
+        for p in figures:
+            con.print(f"wrote {p}")
+        con.print(f"{len(results)} runs of {specs[0].duration_s:.0f} s simulated in "
+                  f"{wall:.1f} s ({args.workers} workers)")
+    return 0 if all(c.passed for c in checks) else 1
+
+
+# ---------------------------------------------------------------------------- preclinical
+def _preclinical_tables(runs: list[pc.PhantomRun]) -> list[Table]:
+    members = sorted({r.spec.phantom.member for r in runs})
+    strategy = runs[0].spec.strategy
+    if len(members) == 1:
+        t = Table(title=f"Experiment 2 (Table 6.5), strategy {strategy}: two rounds of "
+                        f"{' s + '.join(f'{d:g}' for d in runs[0].spec.rounds_s)} s")
+        for col in ("phantom", "canal", "WL mm", "tau_d", "red mm3 before > after",
+                    "compl. %", "thesis %", "fracture", "peak mNm", "rev. (limit)", "passes",
+                    "1st WL s", "stalled s", "fatigue"):
+            t.add_column(col, justify="right")
+        for r in runs:
+            p = r.spec.phantom
+            th = pc.THESIS_TABLE_6_5[p.name]
+            frac = f"[red]{r.fracture_cause}[/]" if r.fracture else "no"
+            t.add_row(p.name, p.describe(), f"{p.working_length_mm:.1f}", f"{p.tau_d_mnm:g}",
+                      f"{_f(r.red_before_mm3, '{:.2f}')} > {_f(r.red_after_mm3, '{:.3f}')}",
+                      f"{100 * r.completeness:.2f}", f"{100 * th[2]:.2f}", frac,
+                      _f(r.peak_torque_mnm, "{:.1f}"), f"{r.reversals} ({r.limit_reversals})",
+                      str(r.passes), _f(r.t_first_wl_s, "{:.0f}", "never"),
+                      _f(r.stalled_s, "{:.0f}"), _f(r.fatigue_damage, "{:.2f}"))
+        means = pc.group_means(runs)
+        for tau, m in means.items():
+            th = pc.THESIS_MEANS.get(tau)
+            t.add_row(f"mean {tau:g}", "", "", "", "", f"{100 * m:.2f}",
+                      "" if th is None else f"{100 * th:.2f}", "", "", "", "", "", "", "")
+        return [t]
+    p = pc.population_summary(runs)
+    t = Table(title=f"Experiment 2 over {p['members']} phantom sets, strategy {strategy}: "
+                    "median / worst")
+    for col in ("phantom", "canal", "tau_d", "completeness", "thesis", "fractures",
+                "peak torque mNm", "reversals", "stalled s", "never at WL"):
+        t.add_column(col, justify="right")
+    for e in p["phantoms"]:
+        c, q = e["completeness"], e["peak_torque_mnm"]
+        t.add_row(e["name"], e["canal"], f"{e['tau_d']:g}",
+                  f"{_f(100 * c['median'])} / {_f(100 * c['worst'])} %",
+                  f"{100 * pc.THESIS_TABLE_6_5[e['name']][2]:.2f} %",
+                  f"{e['fractures']} of {e['n']}", f"{_f(q['median'], '{:.1f}')} / "
+                  f"{_f(q['worst'], '{:.1f}')}",
+                  f"{_f(e['reversals']['median'], '{:g}')} / "
+                  f"{_f(e['reversals']['worst'], '{:g}')} "
+                  f"({_f(e['limit_reversals']['worst'], '{:g}')})",
+                  f"{_f(e['stalled_s']['median'], '{:.0f}')} / "
+                  f"{_f(e['stalled_s']['worst'], '{:.0f}')}", str(e["never_reached_wl"]))
+    for tau, d in p["tau_d_groups"].items():
+        th = pc.THESIS_MEANS.get(tau)
+        t.add_row(f"all tau_d {tau:g}", "", "", f"{_f(100 * d['median'])} / "
+                  f"{_f(100 * d['worst'])} %", "" if th is None else f"{100 * th:.2f} % (mean)",
+                  "", "", "", "", "")
+    return [t]
+
+
+def _preclinical_json(runs, checks, figures, wall_s, args) -> dict:
+    members = sorted({r.spec.phantom.member for r in runs})
+    out = {"experiment": "preclinical", "strategy": runs[0].spec.strategy,
+           "rounds_s": list(runs[0].spec.rounds_s), "seeds": members}
+    if len(members) == 1:
+        out["phantoms"] = [r.to_dict() for r in runs]
+        out["means"] = {f"{k:g}": v for k, v in pc.group_means(runs).items()}
+    else:
+        p = pc.population_summary(runs)
+        out["phantoms"] = [{"name": e["name"], "tau_d": e["tau_d"],
+                            "completeness": e["completeness"]["median"],
+                            "completeness_worst": e["completeness"]["worst"],
+                            "fracture": e["fractures"] > 0, **e} for e in p["phantoms"]]
+        out["population"] = {k: v for k, v in p.items() if k != "phantoms"}
+        out["runs"] = [r.to_dict() for r in runs]
+    out.update({
+        "definitions": {
+            "red_mm3": "pulp between the lumen and the target shape, slices to the working "
+                       "length (the simulator's red area; Table 6.5 counts pixels)",
+            "completeness": "eq 6.1, (red before - red after) / red before, 0..1",
+            "peak_torque_mnm": "largest true file torque (simulator), strength 62 mNm",
+            "stalled_s": f"feeding before first reaching the working length while the deepest "
+                         f"point gained < {pc.STALL_GAIN_MM} mm in {pc.STALL_WINDOW_S:g} s",
+        },
+        "thesis": {"table_6_5": {k: {"red_before_px": v[0], "red_after_px": v[1],
+                                     "completeness": v[2], "fracture": v[3]}
+                                 for k, v in pc.THESIS_TABLE_6_5.items()},
+                   "means": {f"{k:g}": v for k, v in pc.THESIS_MEANS.items()}},
+        "checks": [c.to_dict() for c in checks],
+        "figures": [str(p) for p in figures], "wall_s": wall_s})
+    return out
+
+
+def _numbers(text: str, what: str, hi: float) -> tuple[float, ...]:
+    try:
+        vals = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: {what} separated by commas") from None
+    if not vals or any(not (0.0 < v <= hi) for v in vals):
+        raise argparse.ArgumentTypeError(f"{text!r}: each 0 < {what} <= {hi:g}")
+    return vals
+
+
+def _rounds(text: str) -> tuple[float, ...]:
+    return _numbers(text, "seconds", 3600.0)
+
+
+def _speeds(text: str) -> tuple[float, ...]:
+    return _numbers(text, "mm/s", 20.0)
+
+
+def cmd_preclinical(args: argparse.Namespace) -> int:
+    names = pc.NAMES if args.phantom == "all" else tuple(args.phantom)
+    bad = [n for n in names if n not in pc.NAMES]
+    if bad:
+        print(f"dentibot experiment preclinical: phantom {''.join(bad)!r}: letters of "
+              f"{''.join(pc.NAMES)} or 'all'", file=sys.stderr)
+        return 2
+    seeds = _seeds(args)
+    console = None if args.quiet else Console(file=sys.stderr)
+    specs = [pc.PreclinicalSpec(p, strategy=args.strategy, rounds_s=args.rounds,
+                                keep_trace=not args.no_figures and s == seeds[0])
+             for s in seeds for p in pc.phantoms(s, names)]
+    started = time.perf_counter()
+
+    def done(spec, run) -> None:
+        p = spec.phantom
+        _progress(console, f"phantom {p.name} ({p.describe()}, tau_d {p.tau_d_mnm:g}) "
+                           f"seed {p.member}: {100 * run.completeness:.2f} %, "
+                           f"{'fracture' if run.fracture else 'no fracture'}, peak "
+                           f"{run.peak_torque_mnm:.1f} mNm ({run.wall_s:.0f} s)")
+
+    try:
+        runs = run_all(pc.run_phantom, specs, workers=args.workers, done=done)
+    except KeyboardInterrupt:
+        print("aborted", file=sys.stderr)
+        return 130
+    wall = time.perf_counter() - started
+    figures = []
+    if not args.no_figures:
+        from dentibot.experiments.figures import preclinical_figures
+
+        first = [r for r in runs if r.spec.phantom.member == seeds[0]]
+        figures = preclinical_figures(first, Path(args.out or
+                                                  f"runs/experiments/preclinical-{args.strategy}"))
+    checks = pc.checks(runs) if args.strategy == "automated" else []
+    if args.json:
+        print(json.dumps(_clean(_preclinical_json(runs, checks, figures, wall, args)),
+                         indent=1))
+    else:
+        con = _console()
+        for t in _preclinical_tables(runs):
+            con.print(t)
+        con.print("canal: tilt deg, or curve angle deg / radius mm @ start depth mm. red: pulp "
+                  "volume between the lumen and the target #25/.06 shape (the simulator's "
+                  "measure; Table 6.5 counts pixels, so compare completeness). "
+                  f"stalled: feeding without gaining {pc.STALL_GAIN_MM} mm of new depth in "
+                  f"{pc.STALL_WINDOW_S:g} s before first reaching the working length. fatigue: "
+                  "Miner sum (1 = fatigue fracture). reversals (limit): all reversals (those the "
+                  "runtime's hard torque limit forced, whatever the strategy).")
+        for r in runs:
+            if r.status not in ("ok", "fracture"):
+                con.print(f"[red]phantom {r.name} seed {r.spec.phantom.member}: {r.status}[/] "
+                          f"{r.reason}")
+        if checks:
+            con.print(_checks_table(checks))
+        for p in figures:
+            con.print(f"wrote {p}")
+        con.print(f"{len(runs)} phantoms of {sum(args.rounds):g} s simulated in {wall:.1f} s "
+                  f"({args.workers} workers)")
+    return 0 if all(c.passed for c in checks) else 1
+
+
+# ---------------------------------------------------------------------------- parser
+def _positive(text: str) -> int:
+    n = int(text)
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{text}: must be >= 1")
+    return n
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seeds", type=_positive, default=1, metavar="N",
+                   help="population: N seeded random patients/phantoms (default 1: the "
+                        "thesis's set-up)")
+    p.add_argument("--seed", type=int, default=1, help="first seed (default 1)")
+    p.add_argument("--workers", type=_positive, default=default_workers(), metavar="W",
+                   help="parallel local processes (default: the CPU count)")
+    p.add_argument("--json", action="store_true", help="print the results as one JSON object")
+    p.add_argument("--out", help="directory for the figures (default runs/experiments/...)")
+    p.add_argument("--no-figures", action="store_true", help="write no figures")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+
+
+def add_parser(sub) -> None:
+    exp = sub.add_parser("experiment", help="the thesis's chapter-6 experiments on the "
+                         "simulator (lock-step time)", description=__doc__.split("\n\n")[0])
+    esub = exp.add_subparsers(dest="experiment", required=True)
+    a = esub.add_parser("alignment", help="experiment 1: force-guided alignment while the "
+                        "phantom rides the Stewart-platform square (Table 6.4)")
+    a.add_argument("--config", choices=[*al.CONFIGS, "all"], default="all",
+                   help="Table 6.4 configuration (default all)")
+    a.add_argument("--speeds", type=_speeds, default=al.SPEEDS_MM_S, metavar="V,V",
+                   help="platform speeds of the squares in mm/s (default 3,4,5,6)")
+    _common(a)
+    a.set_defaults(func=cmd_alignment)
+    p = esub.add_parser("preclinical", help="experiment 2: six phantoms A-F, two rounds of "
+                        "300 s and 200 s (Table 6.5)")
+    p.add_argument("--strategy", choices=pc.STRATEGIES, default="automated",
+                   help="drilling strategy: automated (thesis 5.4), or an ablation: feedrate "
+                        "(no reversal), reversal (no feedrate control), none (neither)")
+    p.add_argument("--phantom", default="all", help="phantoms to run, e.g. AD (default all)")
+    p.add_argument("--rounds", type=_rounds, default=pc.ROUNDS_S, metavar="S,S",
+                   help="round durations in s (default 300,200)")
+    _common(p)
+    p.set_defaults(func=cmd_preclinical)

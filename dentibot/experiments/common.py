@@ -1,0 +1,130 @@
+"""What both experiments share: running a simulated protocol with a light per-tick tap,
+running many runs in parallel local processes, and summarising populations.
+
+Runs are in lock-step simulated time (:class:`~dentibot.protocol.runner.ProtocolRunner` on the
+built-in simulator, no recording). Parallel runs use a :class:`ProcessPoolExecutor` with the
+"spawn" start method (a clean interpreter per worker: no inherited threads, event loops or
+logging state); every run is a picklable spec in and a picklable result out, and results come
+back in the order of the specs whatever the number of workers, so ``--workers`` never changes
+a number.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import multiprocessing
+import os
+import sys
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import structlog
+
+from dentibot.protocol.runner import ProtocolRunner, RunResult
+from dentibot.protocol.schema import Protocol
+
+S = TypeVar("S")
+R = TypeVar("R")
+
+
+def quiet_logs() -> None:
+    """A worker process's logging: warnings and errors only, on stderr (structlog's default
+    prints everything to stdout, where ``--json`` output goes)."""
+    structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING),
+                        logger_factory=structlog.PrintLoggerFactory(sys.stderr))
+
+
+def default_workers() -> int:
+    return max(1, os.cpu_count() or 1)
+
+
+def run_all(fn: Callable[[S], R], specs: Sequence[S], workers: int = 1,
+            done: Callable[[S, R], None] | None = None) -> list[R]:
+    """``[fn(s) for s in specs]``, in ``workers`` local processes when ``workers > 1``.
+
+    ``fn`` must be a module-level function (it is pickled by name). ``done(spec, result)`` is
+    called in this process as each run finishes (progress display). Results are in the order
+    of ``specs``. An exception in a run (or Ctrl-C) cancels the runs not started yet.
+    """
+    specs = list(specs)
+    workers = max(1, min(int(workers), len(specs)))
+    results: list[Any] = [None] * len(specs)
+    if workers == 1:
+        for i, s in enumerate(specs):
+            results[i] = fn(s)
+            if done is not None:
+                done(s, results[i])
+        return results
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
+                             initializer=quiet_logs) as pool:
+        futures = {pool.submit(fn, s): i for i, s in enumerate(specs)}
+        pending = set(futures)
+        try:
+            while pending:
+                finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for f in finished:
+                    i = futures[f]
+                    results[i] = f.result()
+                    if done is not None:
+                        done(specs[i], results[i])
+        except BaseException:
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
+    return results
+
+
+def run_protocol(protocol: Protocol, tap: Callable[[dict, ProtocolRunner], None],
+                 prepare: Callable[[ProtocolRunner], None] | None = None,
+                 feed_summary: bool = False) -> tuple[RunResult, ProtocolRunner]:
+    """Run ``protocol`` on the built-in simulator without a recording; ``tap(row, runner)``
+    sees every telemetry row.
+
+    ``prepare(runner)`` is called once before the run (to set what the protocol schema does
+    not describe, e.g. when the patient's motion starts). Unless ``feed_summary``, the rows go
+    to ``tap`` only, not to the runner's live summary (it would cost about a third of the run
+    time): the result's summary then carries the status and its reason, the figures come from
+    the tap.
+    """
+    runner = ProtocolRunner(protocol, no_record=True)
+    if prepare is not None:
+        prepare(runner)
+    own = runner.rt.sink
+
+    def sink(row: dict) -> None:
+        if feed_summary:
+            own(row)
+        tap(row, runner)
+
+    runner.rt.sink = sink
+    result = asyncio.run(runner.run())
+    return result, runner
+
+
+def distribution(values: Iterable[float | None], worst: str = "max") -> dict[str, Any]:
+    """Median, worst case (``"max"`` or ``"min"`` is the worst), best case and count of the
+    finite values; None for each figure when there is none."""
+    vals = sorted(float(v) for v in values if v is not None and math.isfinite(float(v)))
+    if not vals:
+        return {"median": None, "worst": None, "best": None, "n": 0}
+    n = len(vals)
+    median = vals[n // 2] if n % 2 else 0.5 * (vals[n // 2 - 1] + vals[n // 2])
+    hi, lo = vals[-1], vals[0]
+    return {"median": median, "worst": hi if worst == "max" else lo,
+            "best": lo if worst == "max" else hi, "n": n}
+
+
+@dataclass(frozen=True)
+class Check:
+    """One of the issue's "must show" claims, and whether this run shows it."""
+
+    claim: str
+    passed: bool
+    detail: str
+
+    def to_dict(self) -> dict:
+        return {"claim": self.claim, "passed": self.passed, "detail": self.detail}
