@@ -37,11 +37,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from benchutil import fmt
 
-from dentibot.control.feedrate import FeedrateParams
 from dentibot.protocol.loader import load_protocol
-from dentibot.protocol.runner import align_plan, runtime_config, world_config
+from dentibot.protocol.runner import align_plan, apply_drill, runtime_config, world_config
 from dentibot.runtime.harness import SimHarness
-from dentibot.runtime.strategies import StrategyParams, make_strategy
 from dentibot.sim.world import World
 from dentibot.telemetry.recorder import McapRecorder
 
@@ -84,15 +82,7 @@ async def prepare(h: SimHarness, protocol) -> None:
     rt.cfg = dataclasses.replace(rt.cfg, plan=align_plan(rt.cfg.plan, align))
     await rt.command("align")
     await rt.run(max_ticks=round(align.duration_s / rt.ts))
-    spec = steps["drill"]
-    strategy = StrategyParams(
-        name=spec.strategy, section_mm=spec.section_mm, min_rounds=spec.min_rounds,
-        feedrate=FeedrateParams(tau_d_mnm=spec.tau_d_mnm, fz_min_n=spec.fz_min_n,
-                                fz_max_n=spec.fz_max_n))
-    rt.cfg = dataclasses.replace(
-        rt.cfg, plan=dataclasses.replace(rt.cfg.plan, strategy=strategy),
-        handpiece=dataclasses.replace(rt.cfg.handpiece, drilling_rpm=spec.rpm))
-    rt.strategy = make_strategy(strategy, rt.cfg.plan.working_length_mm, rt.ts)
+    apply_drill(rt, steps["drill"])
     rt.treatment.passes_left = 10**6          # keep cleaning until the round's time is up
     refusal = await rt.command("drill")
     if refusal is not None:

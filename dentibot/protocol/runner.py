@@ -100,6 +100,18 @@ def align_plan(plan: TreatmentPlan, spec) -> TreatmentPlan:
         align_params=c.params, align_feedrate=feedrate)
 
 
+def apply_drill(rt: Runtime, spec) -> None:
+    """Set up ``rt`` for a drill step: strategy, tau_d and fz bounds (eq 5.7), file speed."""
+    strategy = StrategyParams(
+        name=spec.strategy, section_mm=spec.section_mm, min_rounds=spec.min_rounds,
+        feedrate=FeedrateParams(tau_d_mnm=spec.tau_d_mnm, fz_min_n=spec.fz_min_n,
+                                fz_max_n=spec.fz_max_n))
+    rt.cfg = dataclasses.replace(
+        rt.cfg, plan=dataclasses.replace(rt.cfg.plan, strategy=strategy),
+        handpiece=dataclasses.replace(rt.cfg.handpiece, drilling_rpm=spec.rpm))
+    rt.strategy = make_strategy(strategy, rt.cfg.plan.working_length_mm, rt.ts)
+
+
 def recording_path(p: Protocol, override: str | Path | None = None) -> Path | None:
     if override is not None:
         return Path(override)
@@ -314,14 +326,7 @@ class ProtocolRunner:
 
     async def _step_drill(self, spec) -> None:
         rt = self.rt
-        strategy = StrategyParams(
-            name=spec.strategy, section_mm=spec.section_mm, min_rounds=spec.min_rounds,
-            feedrate=FeedrateParams(tau_d_mnm=spec.tau_d_mnm, fz_min_n=spec.fz_min_n,
-                                    fz_max_n=spec.fz_max_n))
-        rt.cfg = dataclasses.replace(
-            rt.cfg, plan=dataclasses.replace(rt.cfg.plan, strategy=strategy),
-            handpiece=dataclasses.replace(rt.cfg.handpiece, drilling_rpm=spec.rpm))
-        rt.strategy = make_strategy(strategy, rt.cfg.plan.working_length_mm, rt.ts)
+        apply_drill(rt, spec)
         finished = ("done", "fault")
         if not spec.rounds:
             rt.treatment.passes_left = 0
