@@ -61,7 +61,7 @@ def _run(args: argparse.Namespace) -> int:
                             devices=devices)
     try:
         with progress:
-            result = asyncio.run(runner.run())
+            result = asyncio.run(runner.run(handle_sigint=True))
     except KeyboardInterrupt:
         summary = runner.summary
         console.print("[bold red]aborted[/]: file stopped, withdrawn, arm stopped")

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import signal
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -140,6 +141,10 @@ def step_duration_s(p: Protocol, step_name: str) -> float | None:
     return None
 
 
+class _Aborted(Exception):
+    """The operator asked to stop (see :meth:`ProtocolRunner.abort`)."""
+
+
 @dataclass
 class RunResult:
     summary: RunSummary
@@ -208,7 +213,25 @@ class ProtocolRunner:
             self.recorder.event(kind, detail, t=t, tick=tick)
 
     # ---------------------------------------------------------------- run
-    async def run(self) -> RunResult:
+    def abort(self, reason: str = "stopped by the operator (Ctrl-C)") -> None:
+        """Stop the procedure safely after the current tick (signal handlers, UIs)."""
+        self._abort_reason = reason
+        if self.rt is not None:
+            self.rt.request_stop()
+
+    async def run(self, handle_sigint: bool = False) -> RunResult:
+        """Run the steps. With ``handle_sigint``, Ctrl-C calls :meth:`abort` (a safe stop
+        that still writes the recording and the summary) instead of cancelling the task."""
+        if not handle_sigint:
+            return await self._run_devices()
+        loop = asyncio.get_running_loop()
+        loop.add_signal_handler(signal.SIGINT, self.abort)
+        try:
+            return await self._run_devices()
+        finally:
+            loop.remove_signal_handler(signal.SIGINT)
+
+    async def _run_devices(self) -> RunResult:
         if self.devices is None:
             return await self._run()
         p = self.p
@@ -240,6 +263,9 @@ class ProtocolRunner:
                 if self.rt.state == "fault":
                     break
             status, reason = self._status()
+        except _Aborted:
+            await self._safe_stop()
+            return RunResult(self._close("aborted", self._abort_reason), self.path)
         except asyncio.CancelledError:
             await self._safe_stop()
             status, reason = "aborted", self._abort_reason or "cancelled by the operator"
@@ -290,8 +316,12 @@ class ProtocolRunner:
                     log.warning("safe stop: device stop failed", error=str(exc))
 
     async def _run_for(self, seconds: float, until=None) -> None:
+        if self._abort_reason:
+            raise _Aborted
         await self.rt.run(until=lambda r: r.state == "fault" or (until is not None and until(r)),
                           max_ticks=max(1, round(seconds / self.rt.ts)))
+        if self._abort_reason:
+            raise _Aborted
 
     # ---------------------------------------------------------------- steps
     async def _command(self, trigger: str, already: str | None = None) -> None:
