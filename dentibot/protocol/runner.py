@@ -162,6 +162,9 @@ class ProtocolRunner:
     (step, state, t, depth, working length, file torque and its limit, force).
     """
 
+    #: Why the operator stopped the run ("" while running; see :meth:`abort`).
+    _abort_reason = ""
+
     def __init__(self, protocol: Protocol, *, recording: str | Path | None = None,
                  progress: Callable[[dict], None] | None = None,
                  progress_every: int = 250, overwrite: bool = True,
