@@ -2,8 +2,8 @@
 built-in simulator, in lock-step simulated time, with the thesis's numbers alongside.
 
 - ``alignment [--config A|B|C|all]``: experiment 1 (Table 6.4, fig 6.7-6.16);
-- ``preclinical [--strategy automated|feedrate|reversal|none]``: experiment 2 (Table 6.5)
-  and its ablations.
+- ``preclinical [--strategy automated|feedrate|reversal|none|all] [--material M]``:
+  experiment 2 (Table 6.5) and its ablations.
 
 ``--seeds N --workers W`` runs N seeded patients / phantom sets in W local processes and
 reports medians and worst cases. ``--json`` prints one JSON object (progress goes to stderr).
@@ -21,12 +21,15 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
 from dentibot.experiments import alignment as al
 from dentibot.experiments import preclinical as pc
 from dentibot.experiments.common import default_workers, run_all
+from dentibot.sim.canal import MATERIALS
 
 
 def _f(x, fmt="{:.2f}", none="--") -> str:
@@ -218,8 +221,8 @@ def _preclinical_tables(runs: list[pc.PhantomRun]) -> list[Table]:
     if len(members) == 1:
         t = Table(title=f"Experiment 2 (Table 6.5), strategy {strategy}: two rounds of "
                         f"{' s + '.join(f'{d:g}' for d in runs[0].spec.rounds_s)} s")
-        for col in ("phantom", "canal", "WL mm", "tau_d", "red mm3 before > after",
-                    "compl. %", "thesis %", "fracture", "peak mNm", "rev. (limit)", "passes",
+        for col in ("phantom", "canal", "WL mm", "tau_d", "red mm2 before > after",
+                    "compl. %", "thesis %", "shaped %", "fracture", "peak mNm", "rev. (limit)", "passes",
                     "1st WL s", "stalled s", "fatigue"):
             t.add_column(col, justify="right")
         for r in runs:
@@ -227,8 +230,9 @@ def _preclinical_tables(runs: list[pc.PhantomRun]) -> list[Table]:
             th = pc.THESIS_TABLE_6_5[p.name]
             frac = f"[red]{r.fracture_cause}[/]" if r.fracture else "no"
             t.add_row(p.name, p.describe(), f"{p.working_length_mm:.1f}", f"{p.tau_d_mnm:g}",
-                      f"{_f(r.red_before_mm3, '{:.2f}')} > {_f(r.red_after_mm3, '{:.3f}')}",
-                      f"{100 * r.completeness:.2f}", f"{100 * th[2]:.2f}", frac,
+                      f"{_f(r.red_before_mm2, '{:.2f}')} > {_f(r.red_after_mm2, '{:.3f}')}",
+                      f"{100 * r.completeness:.2f}", f"{100 * th[2]:.2f}",
+                      f"{100 * r.shaping:.1f}", frac,
                       _f(r.peak_torque_mnm, "{:.1f}"), f"{r.reversals} ({r.limit_reversals})",
                       str(r.passes), _f(r.t_first_wl_s, "{:.0f}", "never"),
                       _f(r.stalled_s, "{:.0f}"), _f(r.fatigue_damage, "{:.2f}"))
@@ -236,7 +240,7 @@ def _preclinical_tables(runs: list[pc.PhantomRun]) -> list[Table]:
         for tau, m in means.items():
             th = pc.THESIS_MEANS.get(tau)
             t.add_row(f"mean {tau:g}", "", "", "", "", f"{100 * m:.2f}",
-                      "" if th is None else f"{100 * th:.2f}", "", "", "", "", "", "", "")
+                      "" if th is None else f"{100 * th:.2f}", "", "", "", "", "", "", "", "")
         return [t]
     p = pc.population_summary(runs)
     t = Table(title=f"Experiment 2 over {p['members']} phantom sets, strategy {strategy}: "
@@ -266,8 +270,11 @@ def _preclinical_tables(runs: list[pc.PhantomRun]) -> list[Table]:
 
 def _preclinical_json(runs, checks, figures, wall_s, args) -> dict:
     members = sorted({r.spec.phantom.member for r in runs})
-    out = {"experiment": "preclinical", "strategy": runs[0].spec.strategy,
-           "rounds_s": list(runs[0].spec.rounds_s), "seeds": members}
+    spec = runs[0].spec
+    out = {"experiment": "preclinical", "strategy": spec.strategy,
+           "rounds_s": list(spec.rounds_s), "seeds": members, "material": spec.material,
+           "torque_limit_mnm": (0.9 * FILE_TORQUE_LIMIT_MNM if spec.torque_limit_mnm is None
+                                else spec.torque_limit_mnm)}
     if len(members) == 1:
         out["phantoms"] = [r.to_dict() for r in runs]
         out["means"] = {f"{k:g}": v for k, v in pc.group_means(runs).items()}
@@ -281,8 +288,10 @@ def _preclinical_json(runs, checks, figures, wall_s, args) -> dict:
         out["runs"] = [r.to_dict() for r in runs]
     out.update({
         "definitions": {
-            "red_mm3": "pulp between the lumen and the target shape, slices to the working "
-                       "length (the simulator's red area; Table 6.5 counts pixels)",
+            "red_mm2": "red-stained canal as a photograph across it shows it, to the working "
+                       "length (Table 6.5 counts the pixels of such photographs)",
+            "shaping": "removed fraction of the volume between the initial lumen and the "
+                       "target #25/.06 shape, 0..1",
             "completeness": "eq 6.1, (red before - red after) / red before, 0..1",
             "peak_torque_mnm": "largest true file torque (simulator), strength 62 mNm",
             "stalled_s": f"feeding before first reaching the working length while the deepest "
@@ -307,6 +316,13 @@ def _numbers(text: str, what: str, hi: float) -> tuple[float, ...]:
     return vals
 
 
+def _torque_limit(text: str) -> float:
+    v = _numbers(text, "mNm", FILE_TORQUE_LIMIT_MNM)
+    if len(v) != 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: one number of mNm")
+    return v[0]
+
+
 def _rounds(text: str) -> tuple[float, ...]:
     return _numbers(text, "seconds", 3600.0)
 
@@ -324,15 +340,19 @@ def cmd_preclinical(args: argparse.Namespace) -> int:
         return 2
     seeds = _seeds(args)
     console = None if args.quiet else Console(file=sys.stderr)
-    specs = [pc.PreclinicalSpec(p, strategy=args.strategy, rounds_s=args.rounds,
+    strategies = pc.STRATEGIES if args.strategy == "all" else (args.strategy,)
+    specs = [pc.PreclinicalSpec(p, strategy=st, rounds_s=args.rounds, material=args.material,
+                                torque_limit_mnm=(pc.default_torque_limit(st)
+                                                  if args.torque_limit is None
+                                                  else args.torque_limit),
                                 keep_trace=not args.no_figures and s == seeds[0])
-             for s in seeds for p in pc.phantoms(s, names)]
+             for st in strategies for s in seeds for p in pc.phantoms(s, names)]
     started = time.perf_counter()
 
     def done(spec, run) -> None:
         p = spec.phantom
-        _progress(console, f"phantom {p.name} ({p.describe()}, tau_d {p.tau_d_mnm:g}) "
-                           f"seed {p.member}: {100 * run.completeness:.2f} %, "
+        _progress(console, f"{spec.strategy}: phantom {p.name} ({p.describe()}, tau_d "
+                           f"{p.tau_d_mnm:g}) seed {p.member}: {100 * run.completeness:.2f} %, "
                            f"{'fracture' if run.fracture else 'no fracture'}, peak "
                            f"{run.peak_torque_mnm:.1f} mNm ({run.wall_s:.0f} s)")
 
@@ -342,39 +362,84 @@ def cmd_preclinical(args: argparse.Namespace) -> int:
         print("aborted", file=sys.stderr)
         return 130
     wall = time.perf_counter() - started
+    by = {st: [r for r in runs if r.spec.strategy == st] for st in strategies}
     figures = []
     if not args.no_figures:
         from dentibot.experiments.figures import preclinical_figures
 
-        first = [r for r in runs if r.spec.phantom.member == seeds[0]]
-        figures = preclinical_figures(first, Path(args.out or
-                                                  f"runs/experiments/preclinical-{args.strategy}"))
-    checks = pc.checks(runs) if args.strategy == "automated" else []
+        for st, rs in by.items():
+            first = [r for r in rs if r.spec.phantom.member == seeds[0]]
+            figures += preclinical_figures(first, Path(args.out or "runs/experiments")
+                                           / f"preclinical-{st}")
+    checks = (pc.checks(by["automated"]) if "automated" in by else []) + pc.ablation_checks(by)
     if args.json:
-        print(json.dumps(_clean(_preclinical_json(runs, checks, figures, wall, args)),
-                         indent=1))
+        if len(by) == 1:
+            out = _preclinical_json(runs, checks, figures, wall, args)
+        else:
+            out = {"experiment": "preclinical", "strategy": "all",
+                   "strategies": {st: _preclinical_json(rs, [], [], None, args)
+                                  for st, rs in by.items()},
+                   "checks": [c.to_dict() for c in checks],
+                   "figures": [str(p) for p in figures], "wall_s": wall}
+        print(json.dumps(_clean(out), indent=1))
     else:
         con = _console()
-        for t in _preclinical_tables(runs):
-            con.print(t)
-        con.print("canal: tilt deg, or curve angle deg / radius mm @ start depth mm. red: pulp "
-                  "volume between the lumen and the target #25/.06 shape (the simulator's "
-                  "measure; Table 6.5 counts pixels, so compare completeness). "
+        for rs in by.values():
+            for t in _preclinical_tables(rs):
+                con.print(t)
+        if len(by) > 1:
+            con.print(_strategy_table(by))
+        con.print("canal: tilt deg, or curve angle deg / radius mm @ start depth mm. red: the "
+                  "red-stained canal as a photograph across it shows it (Table 6.5 counts its "
+                  "pixels, so compare completeness). shaped: how much of the volume between "
+                  "the initial lumen and the target #25/.06 shape was cut. "
                   f"stalled: feeding without gaining {pc.STALL_GAIN_MM} mm of new depth in "
                   f"{pc.STALL_WINDOW_S:g} s before first reaching the working length. fatigue: "
                   "Miner sum (1 = fatigue fracture). reversals (limit): all reversals (those the "
-                  "runtime's hard torque limit forced, whatever the strategy).")
+                  "runtime's hard torque limit forced, whatever the strategy). Phantom "
+                  f"material: {args.material}. Hard torque limit: "
+                  + ", ".join(f"{st} {_limit_text(rs[0].spec.torque_limit_mnm)}"
+                              for st, rs in by.items()) + ".")
+        if args.strategy not in ("automated", "all"):
+            con.print("An ablation's figures mean most beside the automated algorithm's: "
+                      "--strategy all runs the four strategies on the same phantoms.")
         for r in runs:
             if r.status not in ("ok", "fracture"):
-                con.print(f"[red]phantom {r.name} seed {r.spec.phantom.member}: {r.status}[/] "
-                          f"{r.reason}")
+                con.print(f"[red]{r.spec.strategy}: phantom {r.name} seed "
+                          f"{r.spec.phantom.member}: {r.status}[/] {r.reason}")
         if checks:
             con.print(_checks_table(checks))
         for p in figures:
             con.print(f"wrote {p}")
-        con.print(f"{len(runs)} phantoms of {sum(args.rounds):g} s simulated in {wall:.1f} s "
+        con.print(f"{len(runs)} runs of {sum(args.rounds):g} s simulated in {wall:.1f} s "
                   f"({args.workers} workers)")
     return 0 if all(c.passed for c in checks) else 1
+
+
+def _limit_text(limit: float | None) -> str:
+    if limit is None:
+        return f"{0.9 * FILE_TORQUE_LIMIT_MNM:.1f} mNm (90 % of the strength)"
+    if limit >= FILE_TORQUE_LIMIT_MNM:
+        return f"{limit:g} mNm (at the strength: off in effect)"
+    return f"{limit:g} mNm"
+
+
+def _strategy_table(by: dict[str, list[pc.PhantomRun]]) -> Table:
+    """The strategies side by side on the same phantoms: what each protection buys."""
+    t = Table(title="What each protection buys (same phantoms, same rounds)")
+    for col in ("strategy", "fractures", "mean compl. % tau_d 40", "tau_d 50",
+                "peak mNm", "reversals (median)", "stalled s (median)", "never at WL"):
+        t.add_column(col, justify="right")
+    for st, rs in by.items():
+        means = pc.group_means(rs)
+        t.add_row(st, f"{sum(r.fracture for r in rs)} of {len(rs)}",
+                  _f(100 * means[40.0] if 40.0 in means else None),
+                  _f(100 * means[50.0] if 50.0 in means else None),
+                  f"{max(r.peak_torque_mnm for r in rs):.1f}",
+                  f"{float(np.median([r.reversals for r in rs])):g}",
+                  f"{float(np.median([r.stalled_s for r in rs])):.0f}",
+                  str(sum(r.t_first_wl_s is None for r in rs)))
+    return t
 
 
 # ---------------------------------------------------------------------------- parser
@@ -412,9 +477,15 @@ def add_parser(sub) -> None:
     a.set_defaults(func=cmd_alignment)
     p = esub.add_parser("preclinical", help="experiment 2: six phantoms A-F, two rounds of "
                         "300 s and 200 s (Table 6.5)")
-    p.add_argument("--strategy", choices=pc.STRATEGIES, default="automated",
+    p.add_argument("--strategy", choices=[*pc.STRATEGIES, "all"], default="automated",
                    help="drilling strategy: automated (thesis 5.4), or an ablation: feedrate "
-                        "(no reversal), reversal (no feedrate control), none (neither)")
+                        "(no reversal), reversal (no feedrate control), none (neither); all: "
+                        "the four side by side (four times the runs)")
+    p.add_argument("--material", choices=list(MATERIALS), default=pc.MATERIAL,
+                   help=f"phantom material (default {pc.MATERIAL}, the thesis's phantoms)")
+    p.add_argument("--torque-limit", type=_torque_limit, default=None, metavar="MNM",
+                   help="the runtime's hard file-torque limit (default: 90 %% of the "
+                        "strength for automated, the strength itself for the ablations)")
     p.add_argument("--phantom", default="all", help="phantoms to run, e.g. AD (default all)")
     p.add_argument("--rounds", type=_rounds, default=pc.ROUNDS_S, metavar="S,S",
                    help="round durations in s (default 300,200)")

@@ -5,15 +5,25 @@ ablation asks otherwise) in two rounds of 300 s and 200 s, with tau_d = 40 mNm f
 50 mNm for D-F. The protocol is protocols/preclinical-phantom-D.yaml with the phantom's canal,
 tau_d and seed: load calibration, 0.2 s of self-alignment, then the drilling rounds.
 
+The phantoms are acrylic (:data:`dentibot.sim.canal.MATERIALS`): the torque to turn the file
+grows with its depth (its flutes rub every wall they touch) and its flutes screw it in, so the
+desired torque decides how deep the file gets within the rounds (the thesis's tau_d 40 vs 50),
+and what protects the file from the screw-in is the reversal (5.2), not the feedrate PD alone.
+
+Ablations (``strategy`` other than automated) run with the runtime's hard torque limit at the
+file's strength (:func:`default_torque_limit`): the strategy alone protects the file, and
+:func:`ablation_checks` compares each with the automated algorithm on the same phantoms.
+
 Phantoms (seeded; the thesis's acrylic phantoms "might be straight, tilted, or even curved"):
 A and D straight, B and E tilted, C and F curved. Geometry per phantom from
 ``numpy.random.default_rng([seed, index])`` (ranges in :func:`phantoms`, all assumptions).
 
 Reported per phantom (Table 6.5's columns plus what explains them):
 
-- red before / after: the pulp left between the lumen and the target shape, as the simulated
-  canal measures it (volume in mm^3 over the slices to the working length; Table 6.5 counts
-  pixels of a photograph, so only the ratio compares), and completeness (eq 6.1, 0..1);
+- red area before / after: the red-stained canal as a photograph across it shows it (mm^2;
+  Table 6.5 counts the pixels of such photographs, so only the ratio compares), and
+  completeness (eq 6.1, 0..1); see :mod:`dentibot.sim.canal`. Shaping: how much of the volume
+  between the initial lumen and the target #25/.06 shape has been cut;
 - fracture (torsion or fatigue) and the peak file torque (simulator truth, mNm; the 62 mNm
   strength is the limit);
 - reversals (and how many of them the runtime's hard torque limit, 90 % of 62 mNm, forced:
@@ -54,6 +64,8 @@ THESIS_TABLE_6_5 = {
     "C": (17403, 2738, 0.8427, False), "D": (16114, 53, 0.9967, False),
     "E": (17047, 185, 0.9891, False), "F": (18482, 180, 0.9903, False),
 }
+#: The thesis's phantoms were acrylic (6.3); see dentibot.sim.canal.MATERIALS.
+MATERIAL = "acrylic"
 #: Thesis 6.3: mean completeness per tau_d.
 THESIS_MEANS = {40.0: 0.8841, 50.0: 0.992}
 
@@ -122,6 +134,11 @@ class PreclinicalSpec:
     strategy: str = "automated"
     rounds_s: tuple[float, ...] = ROUNDS_S
     keep_trace: bool = True
+    #: the phantom material: a name, or a mapping as in a protocol's ``phantom.material``
+    material: str | dict = MATERIAL
+    #: the runtime's hard file-torque limit (mNm); None: the protocol default (90 % of the
+    #: strength). Ablations set it to the strength itself, so that the strategy alone decides.
+    torque_limit_mnm: float | None = None
 
     def __post_init__(self) -> None:
         if self.strategy not in STRATEGIES:
@@ -133,9 +150,10 @@ class PhantomRun:
     spec: PreclinicalSpec
     status: str
     reason: str
-    red_before_mm3: float
-    red_after_mm3: float
+    red_before_mm2: float
+    red_after_mm2: float
     completeness: float
+    shaping: float
     fracture: bool
     fracture_cause: str | None
     peak_torque_mnm: float
@@ -158,8 +176,9 @@ class PhantomRun:
         p = self.spec.phantom
         return {"name": p.name, "canal": p.kind, "geometry": asdict(p), "tau_d": p.tau_d_mnm,
                 "strategy": self.spec.strategy, "status": self.status, "reason": self.reason,
-                "red_before_mm3": self.red_before_mm3, "red_after_mm3": self.red_after_mm3,
-                "completeness": self.completeness, "fracture": self.fracture,
+                "red_before_mm2": self.red_before_mm2, "red_after_mm2": self.red_after_mm2,
+                "completeness": self.completeness, "shaping": self.shaping,
+                "fracture": self.fracture,
                 "fracture_cause": self.fracture_cause,
                 "peak_torque_mnm": self.peak_torque_mnm,
                 "peak_torque_estimate_mnm": self.peak_torque_estimate_mnm,
@@ -174,7 +193,7 @@ def preclinical_protocol(spec: PreclinicalSpec) -> Protocol:
     """protocols/preclinical-phantom-D.yaml with this phantom's canal, tau_d, strategy, seed."""
     p = spec.phantom
     phantom: dict = {"working_length_mm": p.working_length_mm, "orifice_gap_mm": 2.0,
-                     "tilt_deg": p.tilt_deg}
+                     "tilt_deg": p.tilt_deg, "material": spec.material}
     if p.curve_start_mm is not None:
         phantom["curve"] = {"start_mm": p.curve_start_mm, "radius_mm": p.curve_radius_mm,
                             "angle_deg": p.curve_angle_deg}
@@ -183,6 +202,8 @@ def preclinical_protocol(spec: PreclinicalSpec) -> Protocol:
         "file": {"size": 25, "taper": 0.06, "length_mm": 25},
         "phantom": phantom,
         "recording": {"enabled": False},
+        **({} if spec.torque_limit_mnm is None
+           else {"limits": {"torque_limit_mnm": spec.torque_limit_mnm}}),
         "steps": [
             {"calibrate_load": {}},
             {"align": {"duration_s": 0.2, "fz_n": 1.0}},
@@ -238,7 +259,6 @@ def run_phantom(spec: PreclinicalSpec) -> PhantomRun:
     s = result.summary
     tr = {k: np.asarray(v) for k, v in trace.items()}
     depth = tr["depth"]
-    ds = canal.p.slice_mm
     arrivals = [tick * runner.rt.ts for tick, kind, _ in runner.rt.events_log
                 if kind == "working_length_reached"]
     t_wl = arrivals[0] if arrivals else None
@@ -248,9 +268,9 @@ def run_phantom(spec: PreclinicalSpec) -> PhantomRun:
                 if kind == "reversal_needed" and detail.startswith("file torque"))
     return PhantomRun(
         spec=spec, status=s.status, reason=s.reason,
-        red_before_mm3=canal.red0 * ds,
-        red_after_mm3=float(canal.red_area_mm2().sum()) * ds,
-        completeness=w.completeness(),
+        red_before_mm2=canal.red0,
+        red_after_mm2=float(canal.red_area_mm2().sum()),
+        completeness=w.completeness(), shaping=canal.shaping(),
         fracture=w.fractured is not None,
         fracture_cause=None if w.fractured is None else w.fractured.cause,
         peak_torque_mnm=peak[0],
@@ -307,6 +327,51 @@ def population_summary(runs: list[PhantomRun]) -> dict:
             "runs": len(runs), "members": len(by_seed),
             "mean_50_minus_40": distribution(diffs, worst="min"),
             "members_50_above_40": sum(d > 0.0 for d in diffs)}
+
+
+def default_torque_limit(strategy: str) -> float | None:
+    """The runtime's hard torque limit for a strategy's runs: the protocol default (90 % of
+    the file's strength) for the automated algorithm; the strength itself for an ablation, so
+    that what protects the file (or fails to) is the strategy, not the runtime's net."""
+    return None if strategy == "automated" else FILE_TORQUE_LIMIT_MNM
+
+
+#: An ablation "stalls" when its mean completeness is this much below the automated one's.
+STALL_MARGIN = 0.01
+
+
+def ablation_checks(by_strategy: dict[str, list[PhantomRun]]) -> list[Check]:
+    """What each protection buys: every ablation run beside the automated algorithm on the
+    same phantoms fractures files the automated algorithm does not, or stalls: on the
+    phantoms where its file survived, its mean completeness is more than
+    :data:`STALL_MARGIN` below the automated algorithm's on the same phantoms."""
+    base = {(r.spec.phantom.member, r.name): r for r in by_strategy.get("automated", [])}
+    if not base:
+        return []
+    removed = {"feedrate": "without reversal", "reversal": "without feedrate control",
+               "none": "without either protection"}
+    n0 = sum(r.fracture for r in base.values())
+    out = []
+    for name, runs in by_strategy.items():
+        if name == "automated" or not runs:
+            continue
+        n = sum(r.fracture for r in runs)
+        pairs = [(r, base[r.spec.phantom.member, r.name]) for r in runs
+                 if not r.fracture and (r.spec.phantom.member, r.name) in base]
+        what = []
+        if n > n0:
+            what.append(f"{n} of {len(runs)} files fractured (automated: {n0})")
+        if pairs:
+            c = float(np.mean([r.completeness for r, _ in pairs]))
+            c0 = float(np.mean([b.completeness for _, b in pairs]))
+            text = (f"mean completeness {100 * c:.1f} % on the {len(pairs)} phantoms whose "
+                    f"file survived (automated: {100 * c0:.1f} %)")
+            what.append(("stalls: " + text) if c < c0 - STALL_MARGIN else text)
+        shown = n > n0 or what[-1].startswith("stalls")
+        out.append(Check(f"{name} ({removed[name]}): fractures or stalls", shown,
+                         "; ".join(what) + f"; peak {max(r.peak_torque_mnm for r in runs):.1f} "
+                         "mNm"))
+    return out
 
 
 def checks(runs: list[PhantomRun]) -> list[Check]:

@@ -30,7 +30,7 @@ from dentibot.runtime.config import RuntimeConfig, Thresholds, ToolGeometry, Tre
 from dentibot.runtime.control_task import Devices, Runtime
 from dentibot.runtime.harness import SimHarness
 from dentibot.runtime.strategies import StrategyParams, make_strategy
-from dentibot.sim.canal import CanalParams
+from dentibot.sim.canal import CanalParams, material_params
 from dentibot.sim.ftsensor import FTSensorParams
 from dentibot.sim.nitifile import NiTiFile
 from dentibot.sim.world import WorldConfig
@@ -65,7 +65,8 @@ def world_config(p: Protocol) -> WorldConfig:
         file=NiTiFile(size=p.file.size, taper=p.file.taper, length_mm=float(p.file.length_mm),
                       torsional_strength_mnm=p.file.torsional_strength_mnm),
         canal=CanalParams(working_length_mm=ph.working_length_mm, tilt_deg=ph.tilt_deg,
-                          **curve, **(PRESHAPED if ph.preshaped else {})),
+                          **curve, **(PRESHAPED if ph.preshaped else {}),
+                          **material_params(ph.material.name, **ph.material.overrides())),
         orifice_gap_mm=ph.orifice_gap_mm, motion=p.patient.motion)
 
 

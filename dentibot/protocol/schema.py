@@ -62,6 +62,43 @@ class CurveSpec(Strict):
     angle_deg: float = Field(25.0, ge=0.0, le=60.0, description="curve angle (deg)")
 
 
+class MaterialSpec(Strict):
+    """The phantom's material (simulator): a named one, optionally with constants changed.
+
+    ``material: acrylic`` is short for ``material: {name: acrylic}``."""
+
+    name: Literal["resin", "acrylic"] = Field(
+        "resin", description="resin: soft training block; acrylic: thesis experiment 2 phantoms")
+    cutting_energy_mj_mm3: float | None = Field(
+        None, gt=0.0, le=100_000.0, description="specific cutting energy (mJ/mm^3)")
+    torque_mnm_per_mm2: float | None = Field(
+        None, ge=0.0, le=1000.0, description="cutting torque per mm^2 of engagement (mNm)")
+    torque_mnm_s_per_mm3: float | None = Field(
+        None, ge=0.0, le=10_000.0,
+        description="cutting torque per mm^2 of engagement and mm/s of feed (mNm s/mm^3)")
+    torque_mnm_per_mm3: float | None = Field(
+        None, ge=0.0, le=1000.0, description="torque of debris in the canal (mNm per mm^3)")
+    rub_mnm_per_mm: float | None = Field(
+        None, ge=0.0, le=10.0, description="flutes rubbing the walls (mNm per mm of contact)")
+    screw_n_per_mnm: float | None = Field(
+        None, ge=0.0, le=1.0, description="screw-in pull per mNm on the flutes (N/mNm)")
+    axial_n_per_mm2: float | None = Field(
+        None, ge=0.0, le=100.0, description="axial resistance of engagement (N per mm^2)")
+    axial_n_per_mm3: float | None = Field(
+        None, ge=0.0, le=100.0, description="axial resistance of debris (N per mm^3)")
+    c_fwd_per_rev: float | None = Field(
+        None, ge=0.0, le=10.0, description="debris augered out per forward revolution")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _named(cls, data):
+        return {"name": data} if isinstance(data, str) else data
+
+    def overrides(self) -> dict[str, float]:
+        """The constants set here (CanalParams names)."""
+        return {k: v for k, v in self.model_dump(exclude={"name"}).items() if v is not None}
+
+
 class PhantomSpec(Strict):
     """The tooth phantom and its canal (simulator only)."""
 
@@ -71,6 +108,7 @@ class PhantomSpec(Strict):
     curve: CurveSpec | None = None
     orifice_gap_mm: float = Field(2.0, ge=0.0, le=20.0,
                                   description="file tip to orifice at the start (mm)")
+    material: MaterialSpec = Field(MaterialSpec(), description="phantom material")
     preshaped: bool = Field(False, description="canal already shaped to the target (thesis "
                                                "experiment 1: 'drilled thoroughly in advance')")
 

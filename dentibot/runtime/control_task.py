@@ -51,7 +51,7 @@ log = structlog.get_logger("dentibot.runtime")
 PRESETS = {"dragging": DRAGGING, "self_alignment": SELF_ALIGNMENT}
 _ZERO6 = np.zeros(6)
 #: Events that are recorded but are not triggers of the state machine.
-NOTES = frozenset({"tcp_point", "inputs_invalid"})
+NOTES = frozenset({"tcp_point", "inputs_invalid", "file_stopped"})
 
 
 @dataclass
@@ -228,8 +228,11 @@ class Runtime:
         if est is not None and not findings:
             events.extend(self._detect(est))
         for trigger, cause in events:
-            if trigger in NOTES:              # progress worth recording, not a transition
+            if trigger in NOTES:              # worth recording, not a transition
                 self._note(trigger, cause or "")
+                if trigger == "file_stopped":
+                    await self.dev.motor.stop()
+                    self._file_cmd = ("stop",)
                 continue
             if trigger == "fault" and tr.state == "fault" and _kind(cause) in {
                     _kind(c) for c in tr.fault_causes}:
@@ -380,9 +383,16 @@ class Runtime:
             elif self._calib.error is not None:
                 ev.append(("fault", f"load calibration: {self._calib.error}"))
         if (tau > self.cfg.thresholds.torque_limit_mnm and self._mode.file in ("forward", "align")
-                and st != "treating.drilling.feeding"):
-            ev.append(("fault", (f"file torque {tau:.1f} mNm > limit "
-                                f"{th.torque_limit_mnm:.1f} mNm in {st}")))
+                and st != "treating.drilling.feeding" and self._file_cmd != ("stop",)):
+            if st == "treating.retracting":
+                # a file bound on the way out (screw-in, taper lock): stop turning it and go
+                # on withdrawing it straight, rather than leave it stopped in the canal
+                ev.append(("file_stopped", (f"file torque {tau:.1f} mNm > limit "
+                                            f"{th.torque_limit_mnm:.1f} mNm while retracting: "
+                                            "withdrawn without turning")))
+            else:
+                ev.append(("fault", (f"file torque {tau:.1f} mNm > limit "
+                                    f"{th.torque_limit_mnm:.1f} mNm in {st}")))
         return ev
 
     def _tcp_step(self) -> list[tuple[str, str | None]]:

@@ -6,9 +6,19 @@ as a circular arc of radius ``curve_radius_mm`` bending towards ``u = x`` by ``c
 Depth ``s`` (mm) is arc length from the orifice.
 
 Discretisation: depth slices of ``slice_mm``. Per slice the lumen radius ``R`` (mm, axisymmetric)
-grows as the file cuts. The remaining pulp ("red area") of a slice is the cross-section between
-the lumen and the target preparation, ``pi (Rt^2 - R^2)`` (mm^2); completeness (eq 6.1) is
-``(red before - red now) / red before`` summed over the slices down to the working length.
+grows as the file cuts.
+
+Completeness (eq 6.1) is measured as the thesis measured it (6.3): the canal of the acrylic
+phantom is filled with red pigment, which also stains its wall to a depth ``stain_mm``, and
+the "red area" is what a photograph across the canal shows red, in pixels. Here: per slice down
+to the working length, the projected width of the stained canal ``2 (R0 + stain)`` times
+``slice_mm`` (mm^2), scaled by the fraction of the stain the file has not cut away,
+``max(0, 1 - (R - R0) / stain)`` (the pigment inside the lumen goes with the cut wall: a file
+that reaches a slice is wider than the initial lumen there). Completeness is
+``(red before - red now) / red before``. So it measures how much of the canal's length the
+file has cleaned, weighted by width, as the photographs did; how close the lumen has come to
+the target preparation (a #25/.06 shape) is :meth:`Canal.shaping`, the removed fraction of the
+volume between the initial lumen and that target.
 
 Contact and cutting (per step, vectorised over the slices the file occupies):
 - the file is a straight line in the straight part of the canal (its lateral offset ``e(s)``
@@ -18,11 +28,26 @@ Contact and cutting (per step, vectorised over the slices the file occupies):
   the file back towards the axis with the wall stiffness, in series with the file's cantilever
   stiffness 3EI/L^3 at the penetration-weighted contact point;
 - engagement ``A = sum(max(0, r_f - R)) ds`` (mm^2): the file diameter profile overlapping the
-  lumen. Torque and axial resistance grow with A, the feed rate and the debris;
-- cutting (forward rotation only): ``dR = kappa * revolutions * overlap``; the removed volume
-  becomes debris, which raises torque until reversal (``c_rev`` per reverse revolution),
-  withdrawal (decay length ``withdraw_mm``) or leaving the canal clears it;
+  lumen. The cutting torque ``tau_c = (k_A + k_v feed) A`` grows with it and with the feed;
+- the torque the canal resists forward rotation with is ``tau_c`` plus the debris
+  (``k_deb`` per mm^3), the wall friction of the lateral force (``mu |F_lat| r``) and the
+  flutes rubbing the walls they touch without cutting (``rub`` per mm of contact length);
+- cutting (forward rotation only) by energy: a rotation ``dtheta`` removes the volume
+  ``tau_c dtheta / u_s`` (``u_s`` the material's specific cutting energy), taken from each
+  slice in proportion to its overlap (never more than the overlap). The removed volume
+  becomes debris, which reverse rotation (``c_rev`` per reverse revolution), forward augering
+  (``c_fwd``), withdrawal beyond a dead band (decay length ``withdraw_mm``) or leaving the
+  canal clears;
+- screw-in: turning forward, the engaged flutes pull the file into the canal like a screw
+  with ``screw`` times the torque on their helical edges (cutting and rubbing) (N); turning
+  back pushes it out with the reverse fraction of that.
+  Nothing else in the model pulls the file in, so a feed that is not regulated can be drawn
+  into a taper lock whose torque breaks the file;
 - the canal bottom (``working_length_mm + apex_margin_mm``) is a stiff axial contact.
+
+Materials (:data:`MATERIALS`) set the cutting, rubbing, debris and screw-in constants of a
+phantom: ``resin`` (the default: a soft training block) and ``acrylic`` (the thesis's
+experiment 2 root phantoms).
 """
 
 from __future__ import annotations
@@ -51,6 +76,9 @@ class CanalParams:
     # assumption: target preparation = the shape of a #25/.06 file at working length.
     target_apical_mm: float = 0.25
     target_taper: float = 0.06
+    # assumption: the red pigment stains the acrylic wall 20 um deep (a dye in a resin
+    # surface); a wall cut deeper than that shows no red.
+    stain_mm: float = 0.02
     slice_mm: float = 0.25
     # assumption: wall stiffness 20 N/mm per mm of contact length (acrylic/dentin surface
     # under a ~0.5 mm file; far stiffer than the file, so the file's compliance dominates).
@@ -59,20 +87,27 @@ class CanalParams:
     access_margin_mm: float = 1.0
     # assumption: canal bottom / chamber floor axial stiffness (N/mm).
     bottom_n_mm: float = 20.0
-    # Cutting and resistance constants, all assumptions chosen so that a #25/.06 file fully
-    # engaged in a #15/.02 canal needs 20-40 mNm (the thesis's tau_d 40-50 mNm range):
-    kappa_per_rev: float = 0.15        # overlap fraction cut per forward revolution
-    torque_mnm_per_mm2: float = 8.0    # torque per mm^2 of engagement
-    torque_mnm_s_per_mm3: float = 20.0  # torque per (mm/s of feed * mm^2 of engagement)
-    torque_mnm_per_mm3: float = 30.0   # torque per mm^3 of debris in the canal
+    # Cutting and resistance constants (the ``resin`` material), all assumptions chosen so
+    # that a #25/.06 file fully engaged in a #15/.02 canal needs 20-40 mNm (the thesis's
+    # tau_d 40-50 mNm range) and shapes a 16 mm canal in one to two minutes at 60 rpm:
+    cutting_energy_mj_mm3: float = 180.0  # u_s: energy per removed volume (mJ/mm^3 = N/mm^2)
+    torque_mnm_per_mm2: float = 8.0    # k_A: cutting torque per mm^2 of engagement
+    torque_mnm_s_per_mm3: float = 20.0  # k_v: per (mm/s of feed * mm^2 of engagement)
+    torque_mnm_per_mm3: float = 30.0   # k_deb: torque per mm^3 of debris in the canal
     friction_mu: float = 0.3           # wall friction: torque mu |F_lat| r_file (N*mm = mNm)
+    rub_mnm_per_mm: float = 0.0        # flutes rubbing the walls, per mm of contact length
+    rub_clearance_mm: float = 0.01     # a slice within this of the file's radius touches it
+    screw_n_per_mnm: float = 0.0       # screw-in pull per mNm on the flutes' edges (N/mNm)
     reverse_factor: float = 0.3        # reverse rotation resists this fraction, does not cut
     axial_n_per_mm2: float = 0.1       # axial resistance per mm^2 of engagement
     axial_n_s_per_mm3: float = 0.5     # axial resistance per (mm/s of feed * mm^2 engaged)
     axial_n_per_mm3: float = 0.5       # axial resistance per mm^3 of debris
     c_rev_per_rev: float = 4.0         # debris cleared: exp(-c_rev * reverse revolutions)
-    c_fwd_per_rev: float = 0.02        # forward rotation augers a little debris out
-    withdraw_mm: float = 0.5           # debris cleared: exp(-withdrawal / withdraw_mm)
+    c_fwd_per_rev: float = 0.1         # forward rotation augers debris out along the flutes
+    withdraw_mm: float = 0.5           # debris cleared: exp(-withdrawal / withdraw_mm) ...
+    # ... counting only withdrawal beyond this dead band from the deepest point since the last
+    # flush: the tip's micrometre jitter under admittance control does not flush the canal.
+    withdraw_deadband_mm: float = 0.1
     # The feed-rate-dependent resistances act on the feed rate low-passed with this time
     # constant (assumption: the file and the dentin chips are viscoelastic, not a pure
     # dashpot). A pure dashpot closes an algebraic loop with the admittance law (velocity =
@@ -83,13 +118,60 @@ class CanalParams:
     def __post_init__(self) -> None:
         if not 0.0 < self.working_length_mm <= 30.0:
             raise ConfigError("canal.working_length_mm", self.working_length_mm, "0 < WL <= 30")
+        if not 0.0 < self.stain_mm <= 1.0:
+            raise ConfigError("canal.stain_mm", self.stain_mm, "0 < stain <= 1 mm")
         if not 0.0 < self.slice_mm <= 1.0:
             raise ConfigError("canal.slice_mm", self.slice_mm, "0 < slice <= 1 mm")
+        for name in ("cutting_energy_mj_mm3",):
+            if not getattr(self, name) > 0.0:
+                raise ConfigError(f"canal.{name}", getattr(self, name), "> 0")
+        for name in ("rub_mnm_per_mm", "screw_n_per_mnm", "withdraw_deadband_mm"):
+            if not getattr(self, name) >= 0.0:
+                raise ConfigError(f"canal.{name}", getattr(self, name), ">= 0")
         if self.curve_start_mm is not None and not (
             0.0 <= self.curve_start_mm < self.working_length_mm and self.curve_radius_mm > 0.0
         ):
             raise ConfigError("canal.curve_start_mm", self.curve_start_mm,
                               "0 <= start < working length, radius > 0")
+
+
+#: Constants a phantom's material sets, and what each is (units in the CanalParams fields).
+MATERIAL_FIELDS = ("cutting_energy_mj_mm3", "torque_mnm_per_mm2", "torque_mnm_s_per_mm3",
+                   "torque_mnm_per_mm3", "rub_mnm_per_mm", "screw_n_per_mnm",
+                   "axial_n_per_mm2", "axial_n_per_mm3", "c_fwd_per_rev")
+#: Phantom materials: overrides of the CanalParams defaults (which are ``resin``).
+#:
+#: ``acrylic``: the thesis's experiment 2 root phantoms (6.3). assumption: no measured values
+#: exist for them; the constants are calibrated against the outcome of Table 6.5 and the
+#: thesis's account of file fracture (chapter 5), not against single readings:
+#:
+#: - harder to cut than the training resin (``u_s`` 3000 mJ/mm^3) and stiffer to wedge
+#:   (``k_A`` 40 mNm/mm^2): the file advances only as fast as it cuts;
+#: - the flutes rub every wall they touch (2.2 mNm per mm of contact): the torque to turn the
+#:   file grows with its depth, so a desired torque caps the depth it can be fed to within the
+#:   time (about 14 mm at tau_d = 40 mNm, past 16 mm at 50);
+#: - they screw in with 0.007 N per mNm on their edges: less than the feedrate PD's 0.025 N
+#:   per mNm (so the PD alone holds the file at ``kp tau_d / (kp - screw)``, 1.4 tau_d,
+#:   which is past the 62 mNm strength for tau_d = 50 and past the reversal threshold for
+#:   both), and at most 0.43 N at the strength, under the PD's 0.5 N pull-back;
+#: - debris hardly holds the file axially (0.1 N per mm^3).
+MATERIALS: dict[str, dict[str, float]] = {
+    "resin": {},
+    "acrylic": {"cutting_energy_mj_mm3": 3000.0, "torque_mnm_per_mm2": 40.0,
+                "torque_mnm_s_per_mm3": 100.0, "rub_mnm_per_mm": 2.2,
+                "screw_n_per_mnm": 0.007, "axial_n_per_mm3": 0.1},
+}
+
+
+def material_params(name: str, **overrides: float) -> dict[str, float]:
+    """CanalParams keyword arguments of material ``name`` with ``overrides`` on top."""
+    if name not in MATERIALS:
+        raise ConfigError("phantom.material", name, f"one of {', '.join(MATERIALS)}")
+    bad = set(overrides) - set(MATERIAL_FIELDS)
+    if bad:
+        raise ConfigError("phantom.material", min(bad),
+                          f"a material constant: {', '.join(MATERIAL_FIELDS)}")
+    return {**MATERIALS[name], **overrides}
 
 
 @dataclass
@@ -122,7 +204,9 @@ class Canal:
         self.Rt = (p.target_apical_mm + p.target_taper * dist_wl) / 2.0
         self.R = self.R0.copy()
         self.in_wl = self.s <= wl
-        self.red0 = float(self._red().sum())
+        self.width0 = 2.0 * (self.R0 + p.stain_mm) * ds * self.in_wl   # red area before
+        self.red0 = float(self.width0.sum())
+        self.pulp0 = float(self._pulp().sum())
         self.debris_mm3 = 0.0
         self._entered = False
         self._feed = 0.0           # filtered feed rate (mm/s)
@@ -140,22 +224,37 @@ class Canal:
                                   1.0 / p.curve_radius_mm, 0.0)
         self.curved = bool(self.kappa.any())
         self._last_depth = -1.0
+        self._flush_ref = 0.0      # deepest point since debris was last flushed (mm)
+        self._tau_cut = 0.0        # cutting torque of the last interaction (mNm)
+        self._tau_edges = 0.0      # torque on the flutes' edges: cutting + rubbing (mNm)
         self._file_key = None
 
     # ------------------------------------------------------------------ pulp
-    def _red(self) -> np.ndarray:
-        return np.where(self.in_wl, np.pi * np.maximum(self.Rt**2 - self.R**2, 0.0), 0.0)
-
     def red_area_mm2(self) -> np.ndarray:
-        """Remaining uncut pulp cross-section per slice (mm^2), slices to the working length."""
+        """Red area per slice to the working length (mm^2) as photographed: the projected
+        stained canal, scaled by the stain left on its wall."""
         return self._red()[self.in_wl]
 
+    def _red(self) -> np.ndarray:
+        return self.width0 * np.clip(1.0 - (self.R - self.R0) / self.p.stain_mm, 0.0, 1.0)
+
     def completeness(self) -> float:
-        """Eq 6.1: (red before - red now) / red before, in [0, 1]; 1 for a canal that had no
-        pulp left to remove (already shaped to the target)."""
-        if self.red0 <= 0.0:
-            return 1.0
+        """Eq 6.1: (red area before - red area now) / red area before, in [0, 1]."""
         return (self.red0 - float(self._red().sum())) / self.red0
+
+    def _pulp(self) -> np.ndarray:
+        return np.where(self.in_wl, np.pi * np.maximum(self.Rt**2 - self.R**2, 0.0), 0.0)
+
+    def pulp_mm3(self) -> float:
+        """Volume (mm^3) between the lumen and the target preparation, to the working length."""
+        return float(self._pulp().sum()) * self.p.slice_mm
+
+    def shaping(self) -> float:
+        """Removed fraction of the volume between the initial lumen and the target
+        preparation, in [0, 1]; 1 for a canal that already had the target's shape."""
+        if self.pulp0 <= 0.0:
+            return 1.0
+        return (self.pulp0 - float(self._pulp().sum())) / self.pulp0
 
     def centreline_point(self, depth_mm: float) -> tuple[float, float, float]:
         """Centreline point at arc length ``depth_mm`` in {P} (mm)."""
@@ -192,14 +291,20 @@ class Canal:
         raw = (s_tip - self._last_depth) / dt if self._last_depth > -1.0 else 0.0
         self._feed += (raw - self._feed) * (dt / (p.feed_filter_s + dt))
         feed = self._feed
-        ds_step = s_tip - self._last_depth
         self._last_depth = s_tip
+        self._tau_cut = self._tau_edges = 0.0
         if s_tip <= 0.0:
             self.debris_mm3 = 0.0
             self._entered = False
+            self._flush_ref = 0.0
             return out
-        if ds_step < 0.0 and self.debris_mm3:
-            self.debris_mm3 *= math.exp(ds_step / p.withdraw_mm)
+        if s_tip > self._flush_ref:
+            self._flush_ref = s_tip
+        else:
+            back = self._flush_ref - s_tip - p.withdraw_deadband_mm
+            if back > 0.0:
+                self.debris_mm3 *= math.exp(-back / p.withdraw_mm)
+                self._flush_ref = s_tip + p.withdraw_deadband_mm
         eu = tip[0] * u[0] + tip[1] * u[1] + tip[2] * u[2]
         ev = tip[0] * v[0] + tip[1] * v[1] + tip[2] * v[2]
         ds = p.slice_mm
@@ -246,9 +351,15 @@ class Canal:
         flat = math.sqrt(out.f_lat[0] ** 2 + out.f_lat[1] ** 2 + out.f_lat[2] ** 2)
         deb = self.debris_mm3
         fin = max(feed, 0.0)
-        out.resist_mnm = (p.torque_mnm_per_mm2 * area + p.torque_mnm_s_per_mm3 * fin * area
-                          + p.torque_mnm_per_mm3 * deb
+        self._tau_cut = tau_cut = (p.torque_mnm_per_mm2 + p.torque_mnm_s_per_mm3 * fin) * area
+        self._tau_edges = tau_cut
+        out.resist_mnm = (tau_cut + p.torque_mnm_per_mm3 * deb
                           + p.friction_mu * flat * f.diameter_mm(out.contact_from_tip_mm) / 2.0)
+        if p.rub_mnm_per_mm:
+            touching = np.count_nonzero(g > -p.rub_clearance_mm)
+            rub = p.rub_mnm_per_mm * ds * touching
+            out.resist_mnm += rub
+            self._tau_edges += rub
         fa = (p.axial_n_per_mm2 * area + p.axial_n_per_mm3 * deb) * feed / (abs(feed) + 0.05)
         fa += p.axial_n_s_per_mm3 * feed * area
         if s_tip > self.bottom_mm:
@@ -263,7 +374,9 @@ class Canal:
     def cut(self, revolutions: float) -> float:
         """Apply ``revolutions`` of file rotation (signed, + cutting) after ``interact``.
 
-        Returns the removed volume (mm^3).
+        Forward rotation removes ``tau_c * 2 pi revolutions / u_s`` (mm^3) from the engaged
+        slices in proportion to their overlap, at most the overlap itself. Returns the removed
+        volume (mm^3).
         """
         p = self.p
         if revolutions < 0.0:
@@ -275,10 +388,25 @@ class Canal:
         i0, i1, overlap = self._win
         if i1 <= i0:
             return 0.0
-        dr = (p.kappa_per_rev * revolutions) * overlap
         r = self.R[i0:i1]
-        dv = 2.0 * math.pi * p.slice_mm * float(np.dot(r, dr))
+        # volume per unit of overlap fraction: 2 pi ds sum(R_i overlap_i) (thin annuli)
+        full = 2.0 * math.pi * p.slice_mm * float(np.dot(r, overlap))
+        if full <= 0.0:
+            return 0.0
+        want = self._tau_cut * 2.0 * math.pi * revolutions / p.cutting_energy_mj_mm3
+        q = min(want / full, 1.0)
+        dr = q * overlap
         r += dr
         self._h[i0:i1] -= dr
+        dv = q * full
         self.debris_mm3 = self.debris_mm3 * math.exp(-p.c_fwd_per_rev * revolutions) + dv
         return dv
+
+    def screw_in_n(self, revolutions: float) -> float:
+        """Axial pull (N, into the canal) of the engaged flutes for this step's rotation:
+        ``screw`` times the torque on their helical edges (cutting and rubbing, not debris)
+        turning forward, ``-reverse_factor`` times that turning back."""
+        if not revolutions or not self._tau_edges:
+            return 0.0
+        pull = self.p.screw_n_per_mnm * self._tau_edges
+        return pull if revolutions > 0.0 else -self.p.reverse_factor * pull

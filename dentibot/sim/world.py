@@ -183,6 +183,7 @@ class World:
             rev = dpos / 360.0
             if it.engagement_mm2 > 0.0 or rev < 0.0:
                 self.canal.cut(rev)
+                it.f_axial_n -= self.canal.screw_in_n(rev)
             if it.max_strain > 0.0 and rev:
                 self.fatigue_damage += abs(rev) / self.file.cycles_to_failure(it.max_strain)
             torque = hp.torque_mnm

@@ -82,3 +82,21 @@ def test_preclinical_table_and_bad_input(capsys):
         main(["experiment", "preclinical", "--seeds", "0"])
     with pytest.raises(SystemExit):
         main(["experiment", "alignment", "--speeds", "fast"])
+
+
+def test_preclinical_all_strategies_side_by_side(capsys):
+    main(["experiment", "preclinical", "--phantom", "D", "--rounds", "4", "--strategy", "all",
+          "--json", "--quiet", "--no-figures", "--workers", "2"])
+    out = _json(capsys)
+    assert out["strategy"] == "all"
+    assert list(out["strategies"]) == ["automated", "feedrate", "reversal", "none"]
+    for name, s in out["strategies"].items():
+        assert s["strategy"] == name and s["material"] == "acrylic"
+        assert [p["name"] for p in s["phantoms"]] == ["D"]
+        # the runtime's net: 90 % of the 62 mNm strength for automated, the strength itself
+        # for the ablations (the strategy alone protects the file)
+        assert s["torque_limit_mnm"] == pytest.approx(55.8 if name == "automated" else 62.0)
+    claims = [c["claim"] for c in out["checks"]]
+    assert claims[0] == "no file fracture"        # one tau_d group only: no comparison
+    assert [c.split()[0] for c in claims if "fractures or stalls" in c] == \
+        ["feedrate", "reversal", "none"]

@@ -67,10 +67,10 @@ def test_config_a_holds_the_file_seated_at_6_mm_s(fast_runs):
 
 
 def test_a_short_preparation_is_consistent_and_tau_d_50_feeds_faster():
-    """Two copies of phantom A for 60 s, tau_d 40 and 50 (the same canal and seed): the
-    higher desired torque lets the feedrate controller feed faster (fig 5.5: fz* = kp (tau_d
-    - tau)), so the file gets deeper in the same time, with a higher peak torque, still under
-    the 62 mNm strength."""
+    """Two copies of acrylic phantom A for 60 s, tau_d 40 and 50 (the same canal and seed):
+    the higher desired torque lets the feedrate controller feed faster (fig 5.5: fz* = kp
+    (tau_d - tau)), so the file gets deeper in the same time, with a higher peak torque, still
+    under the 62 mNm strength."""
     a = pc.phantoms(1, ("A",))[0]
     specs = [pc.PreclinicalSpec(dataclasses.replace(a, tau_d_mnm=tau), rounds_s=(60.0,))
              for tau in (40.0, 50.0)]
@@ -79,11 +79,14 @@ def test_a_short_preparation_is_consistent_and_tau_d_50_feeds_faster():
         assert r.status == "ok" and not r.fracture
         assert 0.0 < r.completeness < 1.0
         # eq 6.1 from the run's own red volumes
-        assert r.completeness == pytest.approx(1.0 - r.red_after_mm3 / r.red_before_mm3)
+        assert r.completeness == pytest.approx(1.0 - r.red_after_mm2 / r.red_before_mm2)
         assert r.peak_torque_mnm < FILE_TORQUE_LIMIT_MNM
         assert r.trace is not None and r.trace["t"][-1] > 60.0
-    assert r40.red_before_mm3 == pytest.approx(r50.red_before_mm3)
+    assert r40.red_before_mm2 == pytest.approx(r50.red_before_mm2)
     assert r50.depth_max_mm > r40.depth_max_mm + 0.5
     assert r50.peak_torque_mnm > r40.peak_torque_mnm
-    # the torque stays near, not above, tau_d + 8 mNm (the reversal torque): no reversals
-    assert r40.peak_torque_mnm < 40.0 + 8.0 and r50.peak_torque_mnm < 50.0 + 8.0
+    # the acrylic's flutes screw in (more than the PD pulls back, deep enough), so reversals
+    # cap the torque: near tau_d + 8 mNm (the reversal torque), plus what the file adds while
+    # the motor stops it (a few mNm), never at the strength
+    for r, tau in ((r40, 40.0), (r50, 50.0)):
+        assert r.peak_torque_mnm < tau + 8.0 + 3.0

@@ -119,6 +119,8 @@ def test_preclinical_protocol_is_the_shipped_one_with_the_phantoms_canal():
     assert built.steps == shipped.steps                      # same calibration, align, rounds
     assert built.file == shipped.file
     assert built.phantom.working_length_mm == pytest.approx(d.working_length_mm)
+    assert built.phantom.material == shipped.phantom.material
+    assert shipped.phantom.material.name == pc.MATERIAL == "acrylic"
 
 
 def test_phantoms_are_seeded_and_grouped_as_in_the_thesis():
@@ -169,3 +171,47 @@ def test_a_run_that_ends_before_the_square_is_reported_not_crashed():
     assert run.status == "fault" and run.speeds == [] and math.isnan(run.max_rel_mm["x"])
     assert [c.passed for c in al.checks({"C": [run]})] == [False, False, False]
     assert al.population_summary([run]) == {"n": 1, "not_ok": 1}
+
+
+def _run(strategy: str, name: str, completeness: float, fracture: bool) -> pc.PhantomRun:
+    ph = next(p for p in pc.phantoms(1) if p.name == name)
+    return pc.PhantomRun(
+        spec=pc.PreclinicalSpec(ph, strategy=strategy, keep_trace=False), status="ok",
+        reason="", red_before_mm2=1.0, red_after_mm2=1.0 - completeness,
+        completeness=completeness, shaping=0.5, fracture=fracture,
+        fracture_cause="torsion" if fracture else None, peak_torque_mnm=50.0,
+        peak_torque_estimate_mnm=50.0, reversals=0, limit_reversals=0, passes=0,
+        depth_max_mm=10.0, t_first_wl_s=None, stalled_s=0.0, fatigue_damage=0.0, wall_s=1.0)
+
+
+def test_ablation_checks_compare_with_the_automated_algorithm_on_the_same_phantoms():
+    by = {
+        "automated": [_run("automated", "A", 0.90, False), _run("automated", "D", 0.99, False)],
+        # fractures one file the automated algorithm did not; better where it survived
+        "feedrate": [_run("feedrate", "A", 0.99, False), _run("feedrate", "D", 0.40, True)],
+        # no fracture, mean 0.930 < 0.945 - 0.01: stalls
+        "reversal": [_run("reversal", "A", 0.87, False), _run("reversal", "D", 0.99, False)],
+        # no fracture, mean 0.940 within 0.01 of 0.945: shows nothing
+        "none": [_run("none", "A", 0.89, False), _run("none", "D", 0.99, False)],
+    }
+    got = {c.claim.split()[0]: c for c in pc.ablation_checks(by)}
+    assert list(got) == ["feedrate", "reversal", "none"]
+    f = got["feedrate"]
+    assert f.passed and "1 of 2 files fractured" in f.detail and "stalls" not in f.detail
+    assert "99.0 % on the 1 phantoms" in f.detail and "(automated: 90.0 %)" in f.detail
+    r = got["reversal"]
+    assert r.passed and "stalls: mean completeness 93.0 %" in r.detail
+    assert "(automated: 94.5 %)" in r.detail
+    assert not got["none"].passed and "fractured" not in got["none"].detail
+    assert pc.ablation_checks({"feedrate": by["feedrate"]}) == []   # nothing to compare with
+
+
+def test_ablations_run_without_the_runtimes_torque_net():
+    assert pc.default_torque_limit("automated") is None
+    for s in ("feedrate", "reversal", "none"):
+        assert pc.default_torque_limit(s) == 62.0
+    d = next(p for p in pc.phantoms(1) if p.name == "D")
+    built = pc.preclinical_protocol(pc.PreclinicalSpec(d, strategy="none",
+                                                       torque_limit_mnm=62.0))
+    assert built.limits.torque_limit_mnm == 62.0
+    assert built.steps[-1].spec.strategy == "none"

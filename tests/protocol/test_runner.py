@@ -24,7 +24,7 @@ steps:
   - drag: {duration_s: 0.4, hand_force_n: [0.0, 0.2, 0.0]}
   - drag: {duration_s: 0.4, hand_force_n: [0.0, -0.2, 0.0]}
   - align: {duration_s: 0.2, fz_n: 1.0}
-  - drill: {strategy: automated, tau_d_mnm: 40, rounds: [{duration_s: 6}]}
+  - drill: {strategy: automated, tau_d_mnm: 40, rounds: [{duration_s: 8}]}
 """
 
 
@@ -54,12 +54,13 @@ async def test_run_records_every_tick_and_the_report_equals_the_live_summary(tmp
 
 
 async def test_a_fault_or_fracture_ends_with_a_nonzero_status(tmp_path):
-    # the "none" ablation (constant feed, no torque regulation, no reversal) with a weak file
-    # (25 mNm instead of 62): the torque of a deep cut exceeds its strength
+    # the "none" ablation (constant feed, no torque regulation, no reversal) in an acrylic
+    # phantom, with the runtime's hard torque limit at the file's strength: the flutes rub
+    # and screw in until the torque exceeds the 62 mNm strength
     text = SHORT.replace("strategy: automated", "strategy: none").replace(
-        "working_length_mm: 8.0", "working_length_mm: 16.0").replace(
-        "seed: 2", "seed: 2\nfile: {torsional_strength_mnm: 25}").replace(
-        "duration_s: 6", "duration_s: 30")
+        "working_length_mm: 8.0", "working_length_mm: 16.0, material: acrylic").replace(
+        "seed: 2", "seed: 2\nlimits: {torque_limit_mnm: 62}").replace(
+        "duration_s: 8", "duration_s: 30")
     res = await ProtocolRunner(parse_protocol(text), recording=tmp_path / "r.mcap").run()
     assert res.summary.status == "fracture" and res.summary.fractures == 1
     assert res.exit_code == EXIT_CODES[res.summary.status] != 0
@@ -68,7 +69,7 @@ async def test_a_fault_or_fracture_ends_with_a_nonzero_status(tmp_path):
 
 async def test_cancel_stops_safely_and_still_writes_recording_and_summary(tmp_path):
     path = tmp_path / "abort.mcap"
-    runner = ProtocolRunner(parse_protocol(SHORT.replace("duration_s: 6", "duration_s: 60")),
+    runner = ProtocolRunner(parse_protocol(SHORT.replace("duration_s: 8", "duration_s: 60")),
                             recording=path)
     task = asyncio.create_task(runner.run())
     while not runner.rt.treatment.in_state("treating"):

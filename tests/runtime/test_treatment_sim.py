@@ -269,3 +269,27 @@ async def test_alignment_left_running_stops_at_the_depth_limit():
     await rt.run(until=lambda r: r.state == "fault", max_ticks=20_000)
     assert rt.state == "fault" and "depth_limit" in rt.treatment.fault_causes[0]
     assert max(r["depth_mm"] for r in rows) <= 7.0 + 0.05
+
+
+async def test_a_file_bound_while_retracting_is_withdrawn_without_turning():
+    """Over the hard torque limit on the way out there is no reversal state to go to: the file
+    stops turning and is withdrawn straight, instead of being left stopped in the canal."""
+    h, rows = harness(seed=6)
+    rt = h.runtime
+    await rt.command("drill")
+    await rt.run(until=lambda r: r.last_row and r.last_row["true_depth_mm"] > 6.0,
+                 max_ticks=20_000)
+    assert await rt.command("retract") is None
+    await rt.run(max_ticks=50)
+    assert rt.state == "treating.retracting" and h.world.handpiece.omega_rpm > 50.0
+    k0 = rt.ticks
+    limit = rt.cfg.thresholds.torque_limit_mnm
+    h.world.canal.debris_mm3 += 2.0          # +60 mNm (torque_mnm_per_mm3): bound
+    await rt.run(until=lambda r: r.state != "treating.retracting", max_ticks=10_000)
+    after = rows[k0:]
+    first = next(i for i, r in enumerate(after) if "file_stopped" in r["events"])
+    assert after[first - 1]["file_torque_mnm"] <= limit < after[first]["file_torque_mnm"]
+    assert first <= 10
+    assert abs(h.world.handpiece.omega_rpm) < 1.0 and h.world.handpiece.cmd_rpm == 0.0
+    assert rt.state != "fault" and not any(r["fractured"] for r in after)
+    assert after[-1]["true_depth_mm"] < 0.5           # withdrawn: back at the orifice
