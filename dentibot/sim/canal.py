@@ -122,9 +122,8 @@ class CanalParams:
             raise ConfigError("canal.stain_mm", self.stain_mm, "0 < stain <= 1 mm")
         if not 0.0 < self.slice_mm <= 1.0:
             raise ConfigError("canal.slice_mm", self.slice_mm, "0 < slice <= 1 mm")
-        for name in ("cutting_energy_mj_mm3",):
-            if not getattr(self, name) > 0.0:
-                raise ConfigError(f"canal.{name}", getattr(self, name), "> 0")
+        if not self.cutting_energy_mj_mm3 > 0.0:
+            raise ConfigError("canal.cutting_energy_mj_mm3", self.cutting_energy_mj_mm3, "> 0")
         for name in ("rub_mnm_per_mm", "screw_n_per_mnm", "withdraw_deadband_mm"):
             if not getattr(self, name) >= 0.0:
                 raise ConfigError(f"canal.{name}", getattr(self, name), ">= 0")

@@ -6,7 +6,8 @@ import pytest
 
 from dentibot.protocol.loader import ProtocolFileError, load_protocol
 from dentibot.protocol.runner import world_config
-from dentibot.sim.canal import MATERIALS, CanalParams
+from dentibot.protocol.schema import MaterialSpec
+from dentibot.sim.canal import MATERIAL_FIELDS, MATERIALS, CanalParams
 
 HEAD = "name: m\nsteps:\n  - calibrate_load: {}\n"
 
@@ -48,3 +49,9 @@ def test_bad_materials_are_named_with_their_limits(tmp_path, phantom, words):
     text = str(e.value)
     for w in words:
         assert w in text, text
+
+
+def test_the_schema_offers_exactly_the_simulators_materials_and_constants():
+    assert set(MaterialSpec.model_fields) - {"name"} == set(MATERIAL_FIELDS)
+    for name in MATERIALS:
+        assert MaterialSpec.model_validate(name).name == name
