@@ -38,7 +38,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchutil import fmt
 
 from dentibot.protocol.loader import load_protocol
-from dentibot.protocol.runner import align_plan, apply_drill, runtime_config, world_config
+from dentibot.protocol.runner import runtime_config, world_config
+from dentibot.protocol.steps import align_plan, apply_drill
 from dentibot.runtime.harness import SimHarness
 from dentibot.sim.world import World
 from dentibot.telemetry.recorder import McapRecorder

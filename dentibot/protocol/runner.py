@@ -1,8 +1,8 @@
 """Run a validated protocol end to end: on the built-in simulator in lock-step time (default),
 or on devices from a configuration (wire simulators or hardware) in real time.
 
-Each step drives the runtime through operator commands only (no step bypasses the state
-machine, the limits or the supervisor). Every tick goes to the MCAP recorder and to the live
+Each step (:mod:`dentibot.protocol.steps`) drives the runtime through operator commands only
+(no step bypasses the state machine, the limits or the supervisor). Every tick goes to the MCAP recorder and to the live
 summary; both see the same rows, so ``dentibot report`` on the file prints the same summary.
 Cancelling the run (Ctrl-C) stops it safely: file stopped, file withdrawn from the canal where
 possible, arm stopped; the recording and the summary are still written (status "aborted").
@@ -11,7 +11,6 @@ possible, arm stopped; the recording and the summary are still written (status "
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import signal
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -20,16 +19,14 @@ from pathlib import Path
 import numpy as np
 import structlog
 
-from dentibot.control.admittance import EXPERIMENT_1
-from dentibot.control.feedrate import FeedrateParams
 from dentibot.errors import ConfigError
 from dentibot.io.devices import DevicesConfig, open_devices
 from dentibot.protocol.schema import Protocol
+from dentibot.protocol.steps import Aborted, StepExecutor
 from dentibot.runtime.clock import RealTimeClock
 from dentibot.runtime.config import RuntimeConfig, Thresholds, ToolGeometry, TreatmentPlan
 from dentibot.runtime.control_task import Devices, Runtime
 from dentibot.runtime.harness import SimHarness
-from dentibot.runtime.strategies import StrategyParams, make_strategy
 from dentibot.sim.canal import CanalParams, material_params
 from dentibot.sim.ftsensor import FTSensorParams
 from dentibot.sim.nitifile import NiTiFile
@@ -39,15 +36,9 @@ from dentibot.telemetry.summary import RunSummary, SummaryAccumulator
 
 log = structlog.get_logger("dentibot.protocol")
 
-#: Longest time a single pass may take before the runner stops waiting (simulated s).
-PASS_TIMEOUT_S = 600.0
-#: Longest time the safe stop may spend withdrawing the file (simulated s).
-RETRACT_TIMEOUT_S = 20.0
 #: A canal whose lumen already has the target preparation's shape.
 PRESHAPED = {"initial_apical_mm": CanalParams.target_apical_mm,
              "initial_taper": CanalParams.target_taper}
-#: Thesis 5.3: spindle speed 60 rpm.
-DRILLING_RPM = 60.0
 EXIT_CODES = {"ok": 0, "fault": 3, "fracture": 4, "aborted": 130}
 
 
@@ -86,46 +77,12 @@ def runtime_config(p: Protocol) -> RuntimeConfig:
                            orifice_gap_mm=p.phantom.orifice_gap_mm))
 
 
-def align_plan(plan: TreatmentPlan, spec) -> TreatmentPlan:
-    """The treatment plan for an align step (Table 6.4 when ``spec.config`` is set)."""
-    if spec.config is None:
-        return dataclasses.replace(plan, align_fz_n=spec.fz_n, align_rpm=spec.rpm,
-                                   align_params=None, align_feedrate=None)
-    c = EXPERIMENT_1[spec.config]
-    feedrate = None
-    if c.fz_bounds_n is not None:
-        lo, hi = c.fz_bounds_n
-        feedrate = FeedrateParams(tau_d_mnm=spec.tau_d_mnm, fz_min_n=lo, fz_max_n=hi)
-    return dataclasses.replace(
-        plan, align_fz_n=c.fz_n if c.fz_n is not None else 0.0,
-        align_rpm=DRILLING_RPM if c.file_rotation else 0.0,
-        align_params=c.params, align_feedrate=feedrate)
-
-
-def apply_drill(rt: Runtime, spec) -> None:
-    """Set up ``rt`` for a drill step: strategy, tau_d and fz bounds (eq 5.7), file speed."""
-    strategy = StrategyParams(
-        name=spec.strategy, section_mm=spec.section_mm, min_rounds=spec.min_rounds,
-        feedrate=FeedrateParams(tau_d_mnm=spec.tau_d_mnm, fz_min_n=spec.fz_min_n,
-                                fz_max_n=spec.fz_max_n))
-    rt.cfg = dataclasses.replace(
-        rt.cfg, plan=dataclasses.replace(rt.cfg.plan, strategy=strategy),
-        handpiece=dataclasses.replace(rt.cfg.handpiece, drilling_rpm=spec.rpm))
-    rt.strategy = make_strategy(strategy, rt.cfg.plan.working_length_mm, rt.ts)
-
-
 def recording_path(p: Protocol, override: str | Path | None = None) -> Path | None:
     if override is not None:
         return Path(override)
     if not p.recording.enabled:
         return None
     return Path(p.recording.path or f"runs/{p.name}-{p.seed}.mcap")
-
-
-def _at_rest(rt: Runtime) -> bool:
-    e = rt.last
-    return e is not None and abs(e.motor_rpm) < 1.0 and rt.last_row is not None and \
-        max(abs(x) for x in rt.last_row["qdot_cmd_deg_s"]) == 0.0
 
 
 def step_duration_s(p: Protocol, step_name: str) -> float | None:
@@ -140,10 +97,6 @@ def step_duration_s(p: Protocol, step_name: str) -> float | None:
     if step.kind == "drill" and spec.rounds:
         return sum(r.duration_s for r in spec.rounds)
     return None
-
-
-class _Aborted(Exception):
-    """The operator asked to stop (see :meth:`ProtocolRunner.abort`)."""
 
 
 @dataclass
@@ -162,9 +115,6 @@ class ProtocolRunner:
     ``progress(figures)`` is called every ``progress_every`` ticks with the live key figures
     (step, state, t, depth, working length, file torque and its limit, force).
     """
-
-    #: Why the operator stopped the run ("" while running; see :meth:`abort`).
-    _abort_reason = ""
 
     def __init__(self, protocol: Protocol, *, recording: str | Path | None = None,
                  progress: Callable[[dict], None] | None = None,
@@ -260,23 +210,24 @@ class ProtocolRunner:
                 **({"tau_d_mnm": drills[0].tau_d_mnm} if drills else {})},
                 overwrite=self._overwrite, validate=False)   # rows are checked in tests
         status, reason = "ok", ""
+        steps = StepExecutor(self.rt, self.world, aborted=lambda: bool(self._abort_reason))
         try:
             for i, step in enumerate(p.steps):
                 self.rt.step_name = f"{i + 1}:{step.kind}"
-                await getattr(self, f"_step_{step.kind}")(step.spec)
+                await steps.step(step.kind, step.spec)
                 if self.rt.state == "fault":
                     break
             status, reason = self._status()
-        except _Aborted:
-            await self._safe_stop()
+        except Aborted:
+            await steps.safe_stop()
             return RunResult(self._close("aborted", self._abort_reason), self.path)
         except asyncio.CancelledError:
-            await self._safe_stop()
+            await steps.safe_stop()
             status, reason = "aborted", self._abort_reason or "cancelled by the operator"
             self._close(status, reason)
             raise
         except BaseException as exc:
-            await self._safe_stop()
+            await steps.safe_stop()
             status, reason = "fault", f"{type(exc).__name__}: {exc}"
             self._close(status, reason)
             raise
@@ -298,83 +249,3 @@ class ProtocolRunner:
             self.recorder.close(status, reason)
         self.summary = self.acc.finish(status, reason)
         return self.summary
-
-    async def _safe_stop(self) -> None:
-        """File stopped, withdrawn where possible, arm stopped; never raises."""
-        rt = self.rt
-        try:
-            if rt.treatment.in_state("treating") and rt.state != "treating.retracting":
-                await rt.command("retract")
-            if rt.state == "treating.retracting":
-                await rt.run(until=lambda r: r.state != "treating.retracting",
-                             max_ticks=round(RETRACT_TIMEOUT_S / rt.ts))
-            if rt.state != "fault":
-                await rt.command("stop")
-            # record the file and the arm coming to rest (or 1 s of it)
-            await rt.run(until=_at_rest, max_ticks=round(1.0 / rt.ts))
-        finally:
-            for dev in (rt.dev.motor, rt.dev.arm):
-                try:
-                    await dev.stop()
-                except Exception as exc:  # noqa: BLE001 - stop the other device too
-                    log.warning("safe stop: device stop failed", error=str(exc))
-
-    async def _run_for(self, seconds: float, until=None) -> None:
-        if self._abort_reason:
-            raise _Aborted
-        await self.rt.run(until=lambda r: r.state == "fault" or (until is not None and until(r)),
-                          max_ticks=max(1, round(seconds / self.rt.ts)))
-        if self._abort_reason:
-            raise _Aborted
-
-    # ---------------------------------------------------------------- steps
-    async def _command(self, trigger: str, already: str | None = None) -> None:
-        """Send ``trigger`` unless the runtime is already in state ``already``."""
-        if already is not None and self.rt.state == already:
-            return
-        refusal = await self.rt.command(trigger)
-        if refusal is not None:
-            await self.rt.command("fault")
-            self.rt.treatment.fault_causes[-1] = f"protocol step: {refusal}"
-
-    async def _step_calibrate_load(self, spec) -> None:
-        await self._command("calibrate_load")
-        await self._run_for(60.0, until=lambda r: not r.treatment.in_state("calibrating"))
-
-    async def _step_drag(self, spec) -> None:
-        await self._command("drag", already="dragging")
-        if self.world is None:            # a real operator's hand moves the handpiece
-            await self._run_for(spec.duration_s)
-            return
-        self.world.hand_force_0 = tuple(spec.hand_force_n)
-        try:
-            await self._run_for(spec.duration_s)
-        finally:
-            self.world.hand_force_0 = (0.0, 0.0, 0.0)
-
-    async def _step_align(self, spec) -> None:
-        rt = self.rt
-        rt.cfg = dataclasses.replace(rt.cfg, plan=align_plan(rt.cfg.plan, spec))
-        await self._command("align", already="self_aligning")
-        await self._run_for(spec.duration_s)
-
-    async def _step_drill(self, spec) -> None:
-        rt = self.rt
-        apply_drill(rt, spec)
-        finished = ("done", "fault")
-        if not spec.rounds:
-            rt.treatment.passes_left = 0
-            await self._command("drill")
-            await self._run_for(PASS_TIMEOUT_S, until=lambda r: r.state in finished)
-            return
-        for rnd in spec.rounds:
-            rt.treatment.passes_left = 10**6     # keep cleaning until the round's time is up
-            await self._command("drill")
-            await self._run_for(rnd.duration_s, until=lambda r: r.state in finished)
-            if rt.state == "fault":
-                return
-            rt.treatment.passes_left = 0
-            if rt.state != "treating.retracting":
-                await self._command("retract")
-            await self._run_for(RETRACT_TIMEOUT_S, until=lambda r: r.state in finished)
-

@@ -10,7 +10,7 @@ supervisor, and a refused command comes back with the machine's reason (which st
 needs first).
 
 Timed steps (``step drag duration_s=2``, ``drill`` to the working length, rounds) are the
-protocol runner's own steps (:class:`~dentibot.protocol.runner.ProtocolRunner`), run as a
+protocol runner's own steps (:class:`~dentibot.protocol.steps.StepExecutor`), run as a
 background *activity* against the running control task; the operator can pause, reverse,
 retract, stop or e-stop meanwhile. The live panel reads :meth:`SessionController.snapshot`
 (never blocks the control task).
@@ -31,13 +31,9 @@ import structlog
 
 from dentibot.errors import DentibotError
 from dentibot.io.devices import DevicesConfig, load_devices_config, open_devices
-from dentibot.protocol.runner import (
-    ProtocolRunner,
-    align_plan,
-    runtime_config,
-    world_config,
-)
+from dentibot.protocol.runner import runtime_config, world_config
 from dentibot.protocol.schema import Protocol
+from dentibot.protocol.steps import StepExecutor, align_plan
 from dentibot.runtime.clock import DeadlineStats, LockStepClock, RealTimeClock
 from dentibot.runtime.control_task import Devices, Runtime
 from dentibot.runtime.harness import SimHarness
@@ -178,21 +174,16 @@ class _LiveRuntime:
         return await self._session.gate.submit(lambda: rt.command(trigger))
 
 
-class _LiveSteps(ProtocolRunner):
-    """The protocol runner's steps and safe stop, on the session's running control task.
-
-    Deliberately does not call ``ProtocolRunner.__init__`` (no recording, no summary, no
-    harness of its own): the steps use only ``rt``, ``world``, ``_command`` and ``_run_for``.
-    A refused command ends the step with the refusal (the runner, unattended, faults instead).
-    """
+class _LiveSteps(StepExecutor):
+    """The protocol's steps and safe stop on the session's running control task. A refused
+    command ends the step with the refusal (the runner, unattended, faults instead)."""
 
     def __init__(self, session: SessionController) -> None:
-        self.rt = _LiveRuntime(session)
-        self.world = session.world
+        super().__init__(_LiveRuntime(session), session.world)
         #: the outcome of the step's first command (None: taken, else the Refusal)
         self.first: asyncio.Future = asyncio.get_running_loop().create_future()
 
-    async def _command(self, trigger: str, already: str | None = None) -> None:
+    async def command(self, trigger: str, already: str | None = None) -> None:
         refusal = None
         if already is None or self.rt.state != already:
             refusal = await self.rt.command(trigger)
@@ -441,7 +432,7 @@ class SessionController:
         self._activity_name = name
         self._activity_end = ""
         self._activity = task = asyncio.create_task(
-            self._run_activity(name, getattr(steps, f"_step_{kind}")(spec), steps),
+            self._run_activity(name, steps.step(kind, spec), steps),
             name=f"dentibot-session-{kind}")
         await asyncio.wait([steps.first, task], return_when=asyncio.FIRST_COMPLETED)
         if steps.first.done() and steps.first.result() is not None:
@@ -714,7 +705,7 @@ class SessionController:
         try:
             await self._end_activity("stop safely")
             self.runtime.treatment.passes_left = 0
-            await _LiveSteps(self)._safe_stop()
+            await _LiveSteps(self).safe_stop()
         except GateClosed as exc:
             return Reply("error", f"stop safely: control task stopped ({exc})")
         finally:
@@ -739,7 +730,7 @@ class SessionController:
                 rt.treatment.passes_left = 0
                 moving = rt.state not in ("idle", "done", "fault")
                 try:
-                    await _LiveSteps(self)._safe_stop()
+                    await _LiveSteps(self).safe_stop()
                 except GateClosed:
                     pass
                 if moving:
