@@ -51,11 +51,11 @@ INCOMPLETE = "incomplete"     # status of a recording without /run/end (crash, s
 SUMMARY_STATUSES: tuple[str, ...] = (*END_STATUSES, INCOMPLETE)
 
 
-@dataclass
-class StepSummary:
-    """Figures of one protocol step (see the module docstring for the definitions)."""
+@dataclass(kw_only=True)
+class Figures:
+    """The figures a whole run and each of its steps report (see the module docstring for
+    the definitions)."""
 
-    name: str
     ticks: int = 0
     duration_s: float = 0.0
     depth_reached_mm: float | None = None
@@ -70,33 +70,31 @@ class StepSummary:
     lateness_p99_us: float | None = None
 
 
-@dataclass
-class RunSummary:
+@dataclass(kw_only=True)
+class StepSummary(Figures):
+    """Figures of one protocol step."""
+
+    name: str
+
+
+@dataclass(kw_only=True)
+class RunSummary(Figures):
     """Figures of a whole run, plus one :class:`StepSummary` per protocol step (in order of
     first appearance), the ``/events`` kinds counted (``events``) and the per-tick detected
     event names counted (``detections``)."""
 
     status: str
     reason: str = ""
-    ticks: int = 0
-    duration_s: float = 0.0
-    depth_reached_mm: float | None = None
-    completeness: float | None = None
-    fractures: int = 0
-    peak_file_torque_mNm: float | None = None
-    mean_file_torque_mNm: float | None = None
-    peak_force_N: float | None = None
-    reversals: int = 0
-    patient_moved_episodes: int = 0
-    deadline_misses: int = 0
-    lateness_p99_us: float | None = None
     events: dict[str, int] = field(default_factory=dict)
     detections: dict[str, int] = field(default_factory=dict)
     steps: list[StepSummary] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-serialisable dict (steps as a list of dicts, in order)."""
-        return asdict(self)
+        """JSON-serialisable dict: status and reason first, then the figures; steps as a list
+        of dicts in order, each with its name first."""
+        d = asdict(self)
+        d["steps"] = [{"name": st.pop("name"), **st} for st in d["steps"]]
+        return {"status": d.pop("status"), "reason": d.pop("reason"), **d}
 
 
 def _num(value: Any) -> float | None:
