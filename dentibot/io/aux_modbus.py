@@ -18,9 +18,15 @@ wrong magic) or the newest sample is older than ``stale_after_s`` (heartbeat fro
 dropped link is re-opened every ``reconnect_period_s`` by the same task; malformed answers are
 counted and logged (on change, not at the poll rate) and never stop the task.
 
+Host watchdog (map 1.1): on a 1.1+ device, ``connect()`` (and every reconnection) writes
+``watchdog_ms`` to HR 7 and the poll task writes a new counter to HR 6 every quarter of it, so
+the device holds the platform and lights FAULT when DentiBot dies or the link breaks for
+longer than that. A 1.0 device is left as it is.
+
 Counters: ``polls`` (requests sent), ``received`` (well-formed answers), ``unchanged`` (answers
 with the same heartbeat), ``errors`` (failed polls), ``lost`` (poll periods skipped because a
-poll or the event loop overran), ``reconnects``, ``writes``; ``seq`` is the sample count.
+poll or the event loop overran), ``reconnects``, ``writes``, ``feeds`` (watchdog writes);
+``seq`` is the sample count.
 """
 
 from __future__ import annotations
@@ -43,8 +49,10 @@ from dentibot.io.aux_registers import (
     MAP_VERSION,
     AuxInputs,
     Table,
+    check_watchdog_ms,
     decode_inputs,
     encode_setpoint,
+    point,
     span,
     version_text,
 )
@@ -72,11 +80,14 @@ class AuxModbusDriver:
         request_timeout_s: connect and per-request answer timeout (0.2 s), no retries (the
             next poll is the retry).
         reconnect_period_s: pause between attempts to re-open a dropped link (0.5 s).
+        watchdog_ms: host watchdog time armed on a 1.1+ device (200 ms = 20 poll periods;
+            0 leaves it off).
     """
 
     def __init__(self, host: str = "192.168.0.50", port: int = 502, device_id: int = 1,
                  poll_period_s: float = 0.01, stale_after_s: float = 0.1,
-                 request_timeout_s: float = 0.2, reconnect_period_s: float = 0.5) -> None:
+                 request_timeout_s: float = 0.2, reconnect_period_s: float = 0.5,
+                 watchdog_ms: int = 200) -> None:
         for field, v in (("poll_period_s", poll_period_s), ("stale_after_s", stale_after_s),
                          ("request_timeout_s", request_timeout_s),
                          ("reconnect_period_s", reconnect_period_s)):
@@ -93,8 +104,12 @@ class AuxModbusDriver:
         self.stale_after_s = float(stale_after_s)
         self.request_timeout_s = float(request_timeout_s)
         self.reconnect_period_s = float(reconnect_period_s)
+        self.watchdog_ms = check_watchdog_ms(watchdog_ms)
+        #: feed the watchdog every this many polls (a quarter of its time)
+        self._feed_every = max(1, int(watchdog_ms / 4000.0 / self.poll_period_s))
+        self._watchdog_on = False
         self.polls = self.received = self.unchanged = self.errors = self.lost = 0
-        self.reconnects = self.writes = self.seq = 0
+        self.reconnects = self.writes = self.seq = self.feeds = 0
         #: (magic, map_version) read at connect.
         self.identity: tuple[int, int] | None = None
         self._client: AsyncModbusTcpClient | None = None
@@ -125,6 +140,7 @@ class AuxModbusDriver:
                 raise DeviceFault(DEVICE, f"cannot connect to {self.host}:{self.port}")
             self.identity = await self._check_identity()
             self._link_up = True
+            await self._arm_watchdog()
             await self._poll_once()
             if self._last_error is not None:
                 raise DeviceFault(DEVICE, f"first poll failed: {self._last_error}")
@@ -204,6 +220,11 @@ class AuxModbusDriver:
                     deadline = time.monotonic()
                     continue
                 await self._poll_once()
+                if self._watchdog_on and self.polls % self._feed_every == 0:
+                    try:
+                        await self._feed()
+                    except DeviceFault as exc:
+                        self._fail(str(exc))
             except Exception as exc:   # noqa: BLE001 - nothing unforeseen may stop the reader
                 self._fail(f"unexpected {type(exc).__name__}: {exc}")
 
@@ -221,6 +242,26 @@ class AuxModbusDriver:
         self._heartbeat = None
         self._link_up = True
         log.info("aux_modbus.reconnected", host=self.host, port=self.port)
+        try:
+            await self._arm_watchdog()         # the device may have restarted (power-on: off)
+        except DeviceFault as exc:
+            self._fail(str(exc))
+
+    async def _arm_watchdog(self) -> None:
+        """Write the watchdog time on a 1.1+ device, then feed it once."""
+        self._watchdog_on = bool(self.watchdog_ms) and self.identity is not None \
+            and (self.identity[1] & 0xFF) >= 1
+        if self._watchdog_on:
+            await self._send("the host watchdog time", self._client.write_register,
+                              point(Table.HOLDING_REGISTER, "watchdog_ms").address,
+                              self.watchdog_ms)
+            await self._feed()
+
+    async def _feed(self) -> None:
+        self.feeds += 1
+        await self._send("the host watchdog", self._client.write_register,
+                          point(Table.HOLDING_REGISTER, "host_watchdog").address,
+                          self.feeds & 0xFFFF or 1)
 
     async def _poll_once(self) -> None:
         first, n = span(Table.INPUT_REGISTER)
@@ -310,6 +351,11 @@ class AuxModbusDriver:
                           first, words)
 
     async def _write(self, what: str, method, address: int, value) -> None:
+        """An operator's write (counted in ``writes``)."""
+        await self._send(what, method, address, value)
+        self.writes += 1
+
+    async def _send(self, what: str, method, address: int, value) -> None:
         if method is None or not self.connected:
             raise DeviceFault(DEVICE, f"cannot write {what}: link to {self.host}:{self.port} "
                                       "down")
@@ -319,4 +365,3 @@ class AuxModbusDriver:
             raise DeviceFault(DEVICE, f"no answer writing {what} ({exc})") from exc
         if rr.isError():
             raise DeviceFault(DEVICE, f"writing {what} refused: {_exception_text(rr)}")
-        self.writes += 1

@@ -37,7 +37,7 @@ DEVICE = "aux-modbus"
 MAGIC = 0x4442
 #: Map version (major, minor) served by this code. A client accepts any minor of its major
 #: (minor versions only add registers or flag bits); a different major is refused.
-MAP_VERSION = (1, 0)
+MAP_VERSION = (1, 1)
 #: Length counts per mm in the int32 position registers (0.01 mm resolution).
 COUNTS_PER_MM = 100
 #: Platform axes, in register order.
@@ -45,6 +45,8 @@ AXES = ("x", "y", "z")
 # assumption: the lab's Stewart platform travels at least +-25 mm on each axis around its home
 # (the thesis's experiment 1 draws a 15 mm square). Checked on both sides of the wire.
 PLATFORM_LIMIT_MM = 25.0
+#: Longest host watchdog time the device accepts (ms).
+WATCHDOG_MAX_MS = 10_000
 
 
 class Table(enum.StrEnum):
@@ -111,8 +113,8 @@ class Point:
     """One entry of the register map.
 
     ``counts_per_unit``: the register holds ``round(value * counts_per_unit)`` (1 = raw).
-    ``limits``: allowed engineering range for writable points (inclusive), checked by the
-    client before sending and by the device on reception. ``flags``: (name, meaning) of bits
+    ``limits``: allowed engineering range for writable points (inclusive, in ``limit_unit``),
+    checked by the client before sending and by the device on reception. ``flags``: (name, meaning) of bits
     0, 1, ... of a FLAGS register. ``const``: the fixed value of an identification register.
     """
 
@@ -126,6 +128,7 @@ class Point:
     limits: tuple[float, float] | None = None
     flags: tuple[tuple[str, str], ...] = ()
     const: int | None = None
+    limit_unit: str = "mm"
 
     @property
     def words(self) -> int:
@@ -172,7 +175,10 @@ REGISTER_MAP: tuple[Point, ...] = (
           flags=(("platform_moving", "platform moving (= DI 2)"),
                  ("platform_fault", "platform drive fault (= DI 3)"),
                  ("setpoint_rejected", ("last setpoint write refused (out of range); "
-                                        "cleared by the next accepted setpoint")))),
+                                        "cleared by the next accepted setpoint")),
+                 ("host_lost", ("the host watchdog expired (HR 6-7): platform held, DRILLING "
+                                "off, FAULT on; cleared by the next new host_watchdog value "
+                                "(v1.1)")))),
     Point(_IR, 5, "platform_x", Kind.I32, "platform actual position x", "0.01 mm",
           COUNTS_PER_MM),
     Point(_IR, 7, "platform_y", Kind.I32, "platform actual position y", "0.01 mm",
@@ -183,7 +189,17 @@ REGISTER_MAP: tuple[Point, ...] = (
     Point(_HR, 0, "setpoint_x", Kind.I32, "platform setpoint x", "0.01 mm", COUNTS_PER_MM, _LIM),
     Point(_HR, 2, "setpoint_y", Kind.I32, "platform setpoint y", "0.01 mm", COUNTS_PER_MM, _LIM),
     Point(_HR, 4, "setpoint_z", Kind.I32, "platform setpoint z", "0.01 mm", COUNTS_PER_MM, _LIM),
+    # the host watchdog (v1.1): DentiBot arms it at connect and feeds it while it polls
+    Point(_HR, 6, "host_watchdog", Kind.U16,
+          "host alive: any new value feeds the watchdog (DentiBot writes a counter)",
+          unit="counts"),
+    Point(_HR, 7, "watchdog_ms", Kind.U16,
+          "host watchdog time: no new host_watchdog value for this long -> host_lost; "
+          "0 = off (the power-on value, so 1.0 hosts work)", "ms",
+          limits=(0, WATCHDOG_MAX_MS), limit_unit="ms"),
 )
+#: Holding registers 0..5: the platform setpoint (written together in one FC16).
+SETPOINT_WORDS = 6
 
 
 def points(table: Table) -> tuple[Point, ...]:
@@ -335,6 +351,7 @@ class AuxInputs:
     platform_fault: bool
     setpoint_rejected: bool
     platform_mm: tuple[float, float, float]
+    host_lost: bool = False
 
     @property
     def identity_ok(self) -> bool:
@@ -348,18 +365,18 @@ def decode_inputs(words: Sequence[int]) -> AuxInputs:
         magic=v["magic"], map_version=v["map_version"], heartbeat=v["heartbeat"],
         pedal=v["pedal"], estop=v["estop"], platform_moving=v["platform_moving"],
         platform_fault=v["platform_fault"], setpoint_rejected=v["setpoint_rejected"],
-        platform_mm=tuple(v[f"platform_{a}"] for a in AXES),
+        platform_mm=tuple(v[f"platform_{a}"] for a in AXES), host_lost=v["host_lost"],
     )
 
 
 def encode_inputs(*, heartbeat: int, pedal: bool, estop: bool, platform_mm,
                   platform_moving: bool = False, platform_fault: bool = False,
-                  setpoint_rejected: bool = False) -> list[int]:
+                  setpoint_rejected: bool = False, host_lost: bool = False) -> list[int]:
     """IR 0..10 image (the device side); the heartbeat is taken modulo 65536."""
     values: dict[str, object] = {
         "heartbeat": heartbeat & 0xFFFF, "pedal": pedal, "estop": estop,
         "platform_moving": platform_moving, "platform_fault": platform_fault,
-        "setpoint_rejected": setpoint_rejected,
+        "setpoint_rejected": setpoint_rejected, "host_lost": host_lost,
     }
     values.update({f"platform_{a}": float(x) for a, x in zip(AXES, platform_mm, strict=True)})
     return encode_registers(Table.INPUT_REGISTER, values)
@@ -384,11 +401,24 @@ def encode_setpoint(mm) -> list[int]:
     """HR 0..5 image of a checked platform setpoint (0.01 mm counts, high word first)."""
     x = check_setpoint(mm)
     return encode_registers(Table.HOLDING_REGISTER,
-                            {f"setpoint_{a}": v for a, v in zip(AXES, x, strict=True)})
+                            {f"setpoint_{a}": v for a, v in zip(AXES, x, strict=True)}
+                            )[:SETPOINT_WORDS]
+
+
+def check_watchdog_ms(ms) -> int:
+    """Validate a host watchdog time (ms, 0 = off); ConfigError names value and limit."""
+    lo, hi = point(Table.HOLDING_REGISTER, "watchdog_ms").limits
+    if isinstance(ms, bool) or not isinstance(ms, int) or not lo <= ms <= hi:
+        raise ConfigError("watchdog_ms", ms, f"an integer {lo:g}..{hi:g} ms (0 = off)")
+    return ms
 
 
 def decode_setpoint(words: Sequence[int]) -> tuple[float, float, float]:
-    """HR 0..5 -> (x, y, z) mm, range-checked (ConfigError when outside the limits)."""
+    """HR 0..5 (or the whole holding-register image) -> (x, y, z) mm, range-checked
+    (ConfigError when outside the limits)."""
+    words = list(words)
+    if len(words) == SETPOINT_WORDS:
+        words += [0] * (span(Table.HOLDING_REGISTER)[1] - SETPOINT_WORDS)
     v = decode_registers(Table.HOLDING_REGISTER, words)
     return check_setpoint([v[f"setpoint_{a}"] for a in AXES])
 
@@ -408,7 +438,7 @@ def doc_rows() -> list[tuple[str, ...]]:
                 addr, ref = f"{addr}-{p.address + 1}", f"{ref}-{p.reference + 1:05d}"
             unit = p.unit
             if p.limits:
-                unit += f" ({p.limits[0]:g}..{p.limits[1]:g} mm)"
+                unit += f" ({p.limits[0]:g}..{p.limits[1]:g} {p.limit_unit})"
             if p.const is not None:
                 unit = f"= 0x{p.const:04X}"
             rows.append((str(table), addr, ref, p.name, str(p.kind), p.access, unit,

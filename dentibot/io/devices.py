@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from dentibot.errors import ConfigError
 from dentibot.io.aux_modbus import AuxModbusDriver
+from dentibot.io.aux_registers import WATCHDOG_MAX_MS
 from dentibot.io.epos4 import Epos4Driver
 from dentibot.io.meca500 import Meca500Driver
 from dentibot.io.netft import NetFTDriver
@@ -63,6 +64,8 @@ class AuxConfig(_Strict):
     host: str = "192.168.0.50"
     port: int = Field(502, ge=1, le=65535)
     device_id: int = Field(1, ge=0, le=247)
+    watchdog_ms: int = Field(200, ge=0, le=WATCHDOG_MAX_MS,
+                             description="host watchdog armed on a map 1.1+ device (0 = off)")
 
 
 class DevicesConfig(_Strict):
@@ -121,7 +124,7 @@ async def open_devices(cfg: DevicesConfig, *, home: bool = True) -> AsyncIterato
         stack.push_async_callback(ft.close)
         aux = None
         if x is not None:
-            aux = AuxModbusDriver(x.host, x.port, x.device_id)
+            aux = AuxModbusDriver(x.host, x.port, x.device_id, watchdog_ms=x.watchdog_ms)
             await aux.connect()
             stack.push_async_callback(aux.close)
         bus_kwargs = {"host": h.host, "port": h.port} if h.interface == "socketcand" else {}

@@ -19,7 +19,14 @@ What it mirrors (addresses in :mod:`dentibot.io.aux_registers`):
   (500 per simulated second) and freezes when nobody steps the World, as a hung PLC's would.
 - IR 4 bit 0 (moving): the motion offset differs between ``world.t - ts`` and ``world.t``;
   bit 1 (fault): the test hook :meth:`set_platform_fault`; bit 2 (setpoint rejected): latched
-  by a refused setpoint write, cleared by the next accepted one.
+  by a refused setpoint write, cleared by the next accepted one; bit 3 (host lost): the host
+  watchdog (HR 6-7, map 1.1) expired.
+
+The host watchdog is the one thing that runs between requests: a task checks it every 10 ms
+(real time, as a PLC's scan cycle would). Once armed (``watchdog_ms`` > 0), no new
+``host_watchdog`` value for that long sets ``host_lost``, switches the DRILLING lamp off and
+the FAULT lamp on, and holds the platform setpoint where it is; the next new value clears
+``host_lost`` (the lamps stay as they are until the host writes them).
 
 Unpleasant parts, as a real PLC: a setpoint outside the limits (or a half-written int32 that
 decodes outside them) is refused with exception 3 (illegal data value) and leaves the World
@@ -44,7 +51,10 @@ from dentibot.io.aux_registers import (
     AXES,
     FUNCTION_TABLE,
     INDICATORS,
+    SETPOINT_WORDS,
     Table,
+    check_watchdog_ms,
+    decode_registers,
     decode_setpoint,
     encode_bits,
     encode_inputs,
@@ -88,7 +98,14 @@ class AuxModbusServer:
         self.refused = 0
         self.platform_fault = False
         self.setpoint_rejected = False
+        #: host watchdog (map 1.1): time (ms, 0 = off), last value, expired
+        self.watchdog_ms = 0
+        self.host_watchdog = 0
+        self.host_lost = False
+        self.watchdog_expiries = 0
+        self._fed_at = 0.0
         self._server: ModbusTcpServer | None = None
+        self._watchdog: asyncio.Task | None = None
 
     # ------------------------------------------------------------------ life cycle
     async def start(self) -> None:
@@ -113,6 +130,7 @@ class AuxModbusServer:
             raise ConfigError("aux_modbus_server.port", self.port,
                               f"a free TCP port on {self.host}", str(exc)) from None
         self._server = server
+        self._watchdog = asyncio.create_task(self._watch_host(), name="aux-modbus-watchdog")
         self.port = server.transport.sockets[0].getsockname()[1]
         log.info("aux_modbus_server.started", host=self.host, port=self.port,
                  device_id=self.device_id)
@@ -122,6 +140,10 @@ class AuxModbusServer:
         server, self._server = self._server, None
         if server is None:
             return
+        task, self._watchdog = self._watchdog, None
+        if task is not None:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
         await server.shutdown()
         # let the transports' connection_lost callbacks close the sockets and any request
         # already scheduled finish (it finds its transport gone and sends nothing)
@@ -149,6 +171,30 @@ class AuxModbusServer:
         """The platform's controller reports (or clears) a drive fault."""
         self.platform_fault = bool(fault)
 
+    # ------------------------------------------------------------------ host watchdog
+    async def _watch_host(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            await asyncio.sleep(0.01)
+            if (self.watchdog_ms and not self.host_lost
+                    and loop.time() - self._fed_at > self.watchdog_ms / 1000.0):
+                self.host_lost = True
+                self.watchdog_expiries += 1
+                self.world.indicators["drilling"] = False
+                self.world.indicators["fault"] = True
+                log.warning("aux_modbus_server.host_lost", watchdog_ms=self.watchdog_ms,
+                            platform_held_mm=self.world.platform_mm)
+
+    def _feed(self, value: int | None, watchdog_ms: int | None) -> None:
+        now = asyncio.get_running_loop().time()
+        if watchdog_ms is not None and watchdog_ms != self.watchdog_ms:
+            self.watchdog_ms = watchdog_ms
+            self._fed_at = now                 # armed (or re-timed) from now
+        if value is not None and value != self.host_watchdog:
+            self.host_watchdog = value
+            self._fed_at = now
+            self.host_lost = False
+
     # ------------------------------------------------------------------ World <-> image
     def platform_actual_mm(self) -> tuple[float, float, float]:
         """What the World applies: commanded offset plus the patient-motion offset now."""
@@ -171,12 +217,13 @@ class AuxModbusServer:
     def _registers_now(self, table: Table) -> list[int]:
         w = self.world
         if table is Table.HOLDING_REGISTER:
-            return encode_registers(table, {f"setpoint_{a}": v
-                                            for a, v in zip(AXES, w.platform_mm, strict=True)})
+            return encode_registers(table, {
+                **{f"setpoint_{a}": v for a, v in zip(AXES, w.platform_mm, strict=True)},
+                "host_watchdog": self.host_watchdog, "watchdog_ms": self.watchdog_ms})
         return encode_inputs(heartbeat=w.steps, pedal=w.pedal, estop=w.estop,
                              platform_mm=self.platform_actual_mm(),
                              platform_moving=self._moving(), platform_fault=self.platform_fault,
-                             setpoint_rejected=self.setpoint_rejected)
+                             setpoint_rejected=self.setpoint_rejected, host_lost=self.host_lost)
 
     async def _on_access(self, fc: int, start: int, address: int, count: int,
                          registers: list[int], set_values) -> ExcCodes | None:
@@ -204,14 +251,25 @@ class AuxModbusServer:
             registers[0:len(image)] = _pack_bits(new)
             return None
         new = list(image)
+        if address < 0 or address + len(set_values) > len(new):
+            return self._refuse(fc, address, set_values, ExcCodes.ILLEGAL_ADDRESS,
+                                f"holding registers end at {len(new) - 1}")
         new[address:address + len(set_values)] = list(set_values)
+        written = range(address, address + len(set_values))
+        values = decode_registers(table, new)
         try:
-            mm = decode_setpoint(new)
+            ms = check_watchdog_ms(values["watchdog_ms"])
         except ConfigError as exc:
-            self.setpoint_rejected = True
             return self._refuse(fc, address, set_values, ExcCodes.ILLEGAL_VALUE, str(exc))
-        self.world.platform_mm = mm
-        self.setpoint_rejected = False
+        if written.start < SETPOINT_WORDS:
+            try:
+                mm = decode_setpoint(new)
+            except ConfigError as exc:
+                self.setpoint_rejected = True
+                return self._refuse(fc, address, set_values, ExcCodes.ILLEGAL_VALUE, str(exc))
+            self.world.platform_mm = mm
+            self.setpoint_rejected = False
+        self._feed(values["host_watchdog"], ms)
         registers[0:len(image)] = image
         return None
 

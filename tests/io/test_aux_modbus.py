@@ -206,9 +206,9 @@ def test_inputs_round_trip(hb, pedal, estop, moving, fault, rejected, counts):
     words = encode_inputs(heartbeat=hb, pedal=pedal, estop=estop, platform_mm=mm,
                           platform_moving=moving, platform_fault=fault,
                           setpoint_rejected=rejected)
-    assert all(0 <= w <= 0xFFFF for w in words) and words[:2] == [0x4442, 0x0100]
+    assert all(0 <= w <= 0xFFFF for w in words) and words[:2] == [0x4442, 0x0101]
     inp = decode_inputs(words)
-    assert inp == AuxInputs(0x4442, 0x0100, hb % 65536, pedal, estop, moving, fault, rejected,
+    assert inp == AuxInputs(0x4442, 0x0101, hb % 65536, pedal, estop, moving, fault, rejected,
                             mm)
     assert inp.identity_ok
 
@@ -267,7 +267,7 @@ async def test_simulator_speaks_mbap_byte_for_byte_and_survives_bad_bytes():
             # FC4, IR 0..2, split inside the MBAP header
             req = mbap(0x1234, 1, struct.pack(">BHH", 4, 0, 3))
             assert await exchange(r, w, req, split=3) == bytes.fromhex(
-                "1234 0000 0009 01 04 06 4442 0100 000a".replace(" ", ""))
+                "1234 0000 0009 01 04 06 4442 0101 000a".replace(" ", ""))
             # beyond the map: exception 2 (illegal data address)
             req = mbap(0x1235, 1, struct.pack(">BHH", 4, 11, 1))
             assert await exchange(r, w, req) == bytes.fromhex("123500000003018402")
@@ -310,7 +310,7 @@ async def test_driver_connects_checks_identity_and_reads():
         with pytest.raises(DeviceFault, match="no sample"):
             await drv.read()
         async with drv:
-            assert drv.identity == (0x4442, 0x0100)
+            assert drv.identity == (0x4442, 0x0101)
             s = await drv.read()
             assert (s.pedal, s.estop, s.platform_mm) == (False, False, (0.0, 0.0, 0.0))
             s2 = await sample_where(drv, lambda x: x.seq >= s.seq + 3)
@@ -585,8 +585,9 @@ async def test_plain_client_reads_the_documented_addresses():
     expected = {
         "pedal": True, "estop": False, "platform_moving": True, "platform_fault": False,
         "ready": False, "drilling": True, "fault": False, "buzzer": False,
-        "magic": 0x4442, "map_version": 0x0100, "heartbeat": 500,
-        "inputs": 0b01, "setpoint_rejected": False,
+        "magic": 0x4442, "map_version": 0x0101, "heartbeat": 500,
+        "inputs": 0b01, "setpoint_rejected": False, "host_lost": False,
+        "host_watchdog": 0, "watchdog_ms": 0,
         "platform_status": 0b001,
         "platform_x": 3.0 + 1.25, "platform_y": -2.5, "platform_z": 0.75,
         "setpoint_x": 1.25, "setpoint_y": -2.5, "setpoint_z": 0.75,
@@ -622,3 +623,81 @@ async def test_plain_client_reads_the_documented_addresses():
         finally:
             client.close()
     assert re.search(r"high word first", DOC.read_text())
+
+
+# ---------------------------------------------------------------------------- host watchdog
+async def _wait_for(pred, timeout: float = 3.0) -> float:
+    """Seconds until ``pred()`` holds (polled every 5 ms); fails after ``timeout``."""
+    loop = asyncio.get_running_loop()
+    t0 = loop.time()
+    while not pred():
+        assert loop.time() - t0 < timeout, "condition not reached"
+        await asyncio.sleep(0.005)
+    return loop.time() - t0
+
+
+async def test_the_device_holds_the_platform_and_lights_fault_when_the_host_goes_silent():
+    """A plain pymodbus client arms a 100 ms watchdog, feeds it once, then goes silent: after
+    100 ms (not before) the device reports host_lost (IR 4 bit 3), DRILLING is off, FAULT on,
+    the setpoint held; a new value clears host_lost."""
+    async with rig() as (world, server, _):
+        world.indicators["drilling"] = True
+        client = AsyncModbusTcpClient(LOCAL, port=server.port, reconnect_delay=0)
+        await client.connect()
+        try:
+            await client.write_registers(0, encode_setpoint((1.0, 2.0, 3.0)), device_id=1)
+            assert not (await client.write_register(7, 100, device_id=1)).isError()
+            assert not (await client.write_register(6, 1, device_id=1)).isError()
+            fed = asyncio.get_running_loop().time()
+            # the same value again does not feed it
+            assert not (await client.write_register(6, 1, device_id=1)).isError()
+            await _wait_for(lambda: server.host_lost)
+            since_feed = asyncio.get_running_loop().time() - fed
+            # not before 100 ms; then within the 10 ms check (generous: a busy machine)
+            assert 0.1 <= since_feed < 0.5
+            rr = await client.read_input_registers(4, count=1, device_id=1)
+            assert rr.registers[0] >> 3 & 1 == 1
+            assert world.indicators["drilling"] is False and world.indicators["fault"] is True
+            assert world.platform_mm == (1.0, 2.0, 3.0)
+            hr = await client.read_holding_registers(6, count=2, device_id=1)
+            assert hr.registers == [1, 100]
+            await client.write_register(6, 2, device_id=1)
+            assert not server.host_lost
+            rr = await client.read_input_registers(4, count=1, device_id=1)
+            assert rr.registers[0] >> 3 & 1 == 0
+            # a watchdog time beyond 10 s is refused (exception 3) and the old one stays
+            rr = await client.write_register(7, 10_001, device_id=1)
+            assert rr.isError() and rr.exception_code == 3
+            assert server.watchdog_ms == 100
+            # 0 switches it off: silence is then no fault
+            await client.write_register(7, 0, device_id=1)
+            await asyncio.sleep(0.25)
+            assert not server.host_lost and server.watchdog_expiries == 1
+        finally:
+            client.close()
+
+
+async def test_the_driver_arms_and_feeds_the_watchdog_and_its_death_trips_it():
+    async with rig() as (world, server, _):
+        drv = driver(server.port)
+        await drv.connect()
+        try:
+            assert server.watchdog_ms == 200
+            await asyncio.sleep(0.6)                 # 3 watchdog times of normal polling
+            assert not server.host_lost and server.watchdog_expiries == 0
+            # fed every 50 ms (a quarter of 200 ms, 5 polls of 10 ms), plus once at connect:
+            # at most 13 in 0.6 s; fewer when a busy machine skips polls
+            assert 3 <= drv.feeds <= 14
+            assert drv.writes == 0                   # watchdog traffic is not an operator write
+            await drv.set_indicator("drilling", True)
+        finally:
+            await drv.close()                        # DentiBot gone
+        await _wait_for(lambda: server.host_lost, timeout=1.0)
+        assert world.indicators["drilling"] is False and world.indicators["fault"] is True
+
+
+def test_watchdog_time_is_checked_before_anything_is_sent():
+    for bad in (-1, 10_001, 1.5, "200", True):
+        with pytest.raises(ConfigError, match="watchdog_ms"):
+            AuxModbusDriver(LOCAL, 502, watchdog_ms=bad)
+    assert AuxModbusDriver(LOCAL, 502, watchdog_ms=0).watchdog_ms == 0
