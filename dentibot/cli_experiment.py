@@ -273,8 +273,7 @@ def _preclinical_json(runs, checks, figures, wall_s, args) -> dict:
     spec = runs[0].spec
     out = {"experiment": "preclinical", "strategy": spec.strategy,
            "rounds_s": list(spec.rounds_s), "seeds": members, "material": spec.material,
-           "torque_limit_mnm": (0.9 * FILE_TORQUE_LIMIT_MNM if spec.torque_limit_mnm is None
-                                else spec.torque_limit_mnm)}
+           "torque_limit_mnm": pc.torque_limit_of(spec)}
     if len(members) == 1:
         out["phantoms"] = [r.to_dict() for r in runs]
         out["means"] = {f"{k:g}": v for k, v in pc.group_means(runs).items()}
@@ -398,7 +397,7 @@ def cmd_preclinical(args: argparse.Namespace) -> int:
                   "Miner sum (1 = fatigue fracture). reversals (limit): all reversals (those the "
                   "runtime's hard torque limit forced, whatever the strategy). Phantom "
                   f"material: {args.material}. Hard torque limit: "
-                  + ", ".join(f"{st} {_limit_text(rs[0].spec.torque_limit_mnm)}"
+                  + ", ".join(f"{st} {_limit_text(rs[0].spec)}"
                               for st, rs in by.items()) + ".")
         if args.strategy not in ("automated", "all"):
             con.print("An ablation's figures mean most beside the automated algorithm's: "
@@ -416,12 +415,11 @@ def cmd_preclinical(args: argparse.Namespace) -> int:
     return 0 if all(c.passed for c in checks) else 1
 
 
-def _limit_text(limit: float | None) -> str:
-    if limit is None:
-        return f"{0.9 * FILE_TORQUE_LIMIT_MNM:.1f} mNm (90 % of the strength)"
+def _limit_text(spec: pc.PreclinicalSpec) -> str:
+    limit = pc.torque_limit_of(spec)
     if limit >= FILE_TORQUE_LIMIT_MNM:
         return f"{limit:g} mNm (at the strength: off in effect)"
-    return f"{limit:g} mNm"
+    return f"{limit:.1f} mNm ({100 * limit / FILE_TORQUE_LIMIT_MNM:.0f} % of the strength)"
 
 
 def _strategy_table(by: dict[str, list[pc.PhantomRun]]) -> Table:

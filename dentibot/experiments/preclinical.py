@@ -42,7 +42,7 @@ import numpy as np
 
 from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
 from dentibot.experiments.common import Check, distribution, run_protocol
-from dentibot.protocol.schema import Protocol
+from dentibot.protocol.schema import LimitsSpec, Protocol
 
 NAMES = ("A", "B", "C", "D", "E", "F")
 KINDS = {"A": "straight", "B": "tilted", "C": "curved",
@@ -334,6 +334,13 @@ def default_torque_limit(strategy: str) -> float | None:
     the file's strength) for the automated algorithm; the strength itself for an ablation, so
     that what protects the file (or fails to) is the strategy, not the runtime's net."""
     return None if strategy == "automated" else FILE_TORQUE_LIMIT_MNM
+
+
+def torque_limit_of(spec: PreclinicalSpec) -> float:
+    """The hard torque limit (mNm) a run of ``spec`` has in force."""
+    if spec.torque_limit_mnm is None:
+        return LimitsSpec().torque_limit_mnm
+    return spec.torque_limit_mnm
 
 
 #: An ablation "stalls" when its mean completeness is this much below the automated one's.

@@ -185,12 +185,14 @@ class AuxModbusServer:
                 log.warning("aux_modbus_server.host_lost", watchdog_ms=self.watchdog_ms,
                             platform_held_mm=self.world.platform_mm)
 
-    def _feed(self, value: int | None, watchdog_ms: int | None) -> None:
+    def _feed(self, value: int, watchdog_ms: int) -> None:
+        """A holding-register write: a new watchdog time arms it from now; a new
+        ``host_watchdog`` value feeds it and clears ``host_lost``."""
         now = asyncio.get_running_loop().time()
-        if watchdog_ms is not None and watchdog_ms != self.watchdog_ms:
+        if watchdog_ms != self.watchdog_ms:
             self.watchdog_ms = watchdog_ms
             self._fed_at = now                 # armed (or re-timed) from now
-        if value is not None and value != self.host_watchdog:
+        if value != self.host_watchdog:
             self.host_watchdog = value
             self._fed_at = now
             self.host_lost = False
@@ -255,13 +257,12 @@ class AuxModbusServer:
             return self._refuse(fc, address, set_values, ExcCodes.ILLEGAL_ADDRESS,
                                 f"holding registers end at {len(new) - 1}")
         new[address:address + len(set_values)] = list(set_values)
-        written = range(address, address + len(set_values))
         values = decode_registers(table, new)
         try:
             ms = check_watchdog_ms(values["watchdog_ms"])
         except ConfigError as exc:
             return self._refuse(fc, address, set_values, ExcCodes.ILLEGAL_VALUE, str(exc))
-        if written.start < SETPOINT_WORDS:
+        if address < SETPOINT_WORDS:            # the write touches the setpoint
             try:
                 mm = decode_setpoint(new)
             except ConfigError as exc:
