@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/lockstep.py [--seconds 300] [--profile 20]
 
 The main job's set-up (``protocols/root-canal.yaml``: world, runtime configuration, alignment)
-on :class:`~dentibot.runtime.harness.SimHarness`, then one drilling round driven as
+on :class:`~dentibot.app.simulated.SimHarness`, then one drilling round driven as
 ``dentibot run`` drives it (automated strategy, passes until the round's time is up) for
 ``--seconds`` of simulated time, three ways:
 
@@ -38,9 +38,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchutil import fmt
 
 from dentibot.protocol.loader import load_protocol
-from dentibot.protocol.runner import runtime_config, world_config
-from dentibot.protocol.steps import align_plan, apply_drill
-from dentibot.runtime.harness import SimHarness
+from dentibot.app.runner import runtime_config, world_config
+from dentibot.app.steps import align_plan, apply_drill
+from dentibot.app.simulated import SimHarness
 from dentibot.sim.world import World
 from dentibot.telemetry.recorder import McapRecorder
 

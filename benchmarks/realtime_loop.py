@@ -43,7 +43,7 @@ from dentibot.io.devices import loopback_config, open_devices
 from dentibot.runtime.clock import Clock, DeadlineStats, RealTimeClock
 from dentibot.runtime.config import RuntimeConfig, Thresholds
 from dentibot.runtime.control_task import Devices, Runtime
-from dentibot.runtime.harness import true_gravity_model
+from dentibot.app.simulated import true_gravity_model
 from dentibot.sim.world import World, WorldConfig
 
 ROOT = Path(__file__).resolve().parents[1]

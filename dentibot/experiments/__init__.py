@@ -5,5 +5,5 @@
 - :mod:`~dentibot.experiments.preclinical`: experiment 2, pre-clinical evaluation on six
   phantoms A-F (Table 6.5), with the drilling strategy as an ablation switch.
 
-``dentibot experiment alignment|preclinical`` runs them (dentibot/cli_experiment.py).
+``dentibot experiment alignment|preclinical`` runs them (:mod:`dentibot.cli.experiment`).
 """

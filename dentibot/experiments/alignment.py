@@ -49,7 +49,7 @@ from scipy.spatial.transform import Rotation
 from dentibot.control.admittance import EXPERIMENT_1
 from dentibot.experiments.common import Check, distribution, run_protocol
 from dentibot.protocol.schema import Protocol
-from dentibot.sim.patient import SQUARE_MM, StewartSquare
+from dentibot.app.simulated import SQUARE_MM, StewartSquare
 
 CONFIGS = ("A", "B", "C")
 #: Thesis 6.2: square speeds (mm/s) and the pause between squares (s).

@@ -1,7 +1,7 @@
 """What both experiments share: running a simulated protocol with a light per-tick tap,
 running many runs in parallel local processes, and summarising populations.
 
-Runs are in lock-step simulated time (:class:`~dentibot.protocol.runner.ProtocolRunner` on the
+Runs are in lock-step simulated time (:class:`~dentibot.app.runner.ProtocolRunner` on the
 built-in simulator, no recording). Parallel runs use a :class:`ProcessPoolExecutor` with the
 "spawn" start method (a clean interpreter per worker: no inherited threads, event loops or
 logging state); every run is a picklable spec in and a picklable result out, and results come
@@ -24,7 +24,7 @@ from typing import Any, TypeVar
 
 import structlog
 
-from dentibot.protocol.runner import ProtocolRunner, RunResult
+from dentibot.app.runner import ProtocolRunner, RunResult
 from dentibot.protocol.schema import Protocol
 
 S = TypeVar("S")

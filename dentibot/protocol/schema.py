@@ -25,9 +25,12 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
-from dentibot.sim.canal import MATERIALS
 
 Vec3 = tuple[float, float, float]
+
+#: The simulated phantom materials a protocol may name (the simulator's table of their
+#: constants has exactly these names; a test holds the two together).
+MATERIAL_NAMES = ("resin", "acrylic")
 
 
 class Strict(BaseModel):
@@ -68,7 +71,7 @@ class MaterialSpec(Strict):
 
     ``material: acrylic`` is short for ``material: {name: acrylic}``."""
 
-    name: Literal[tuple(MATERIALS)] = Field(  # type: ignore[valid-type]
+    name: Literal[MATERIAL_NAMES] = Field(  # type: ignore[valid-type]
         "resin", description="resin: soft training block; acrylic: thesis experiment 2 phantoms")
     cutting_energy_mj_mm3: float | None = Field(
         None, gt=0.0, le=100_000.0, description="specific cutting energy (mJ/mm^3)")

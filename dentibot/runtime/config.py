@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from dentibot.control.admittance import AdmittanceParams
 from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM, FeedrateParams
 from dentibot.errors import ConfigError
-from dentibot.runtime.strategies import StrategyParams
+from dentibot.states.strategies import StrategyParams
 from dentibot.runtime.supervisor import SupervisorLimits
 
 

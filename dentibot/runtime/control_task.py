@@ -40,8 +40,8 @@ from dentibot.errors import DentibotError, DeviceFault
 from dentibot.io.interfaces import Arm, AuxIO, ForceSensor, Handpiece
 from dentibot.runtime.clock import Clock, DeadlineStats
 from dentibot.runtime.config import RuntimeConfig
-from dentibot.runtime.load_calibration import LoadCalibration, TcpRoutine
-from dentibot.runtime.strategies import Decision, make_strategy
+from dentibot.states.load_calibration import LoadCalibration, TcpRoutine
+from dentibot.states.strategies import Decision, make_strategy
 from dentibot.runtime.supervisor import Finding, Supervisor
 from dentibot.states.modes import MODES, Mode
 from dentibot.states.treatment import Refusal, Treatment

@@ -1,7 +1,7 @@
 """The interactive session without its screen: devices, the running control task, commands.
 
 :class:`SessionController` owns one procedure: ``connect`` builds the runtime over the
-built-in simulator (:class:`~dentibot.runtime.harness.SimHarness` with a session clock) or over
+built-in simulator (:class:`~dentibot.app.simulated.SimHarness` with a session clock) or over
 the real drivers (:func:`~dentibot.io.devices.open_devices`, as ``dentibot run --devices``
 does), and starts the control task, which then ticks until ``quit``. Every operator command
 goes through the state machine (``Runtime.command``), executed between two ticks by the
@@ -10,7 +10,7 @@ supervisor, and a refused command comes back with the machine's reason (which st
 needs first).
 
 Timed steps (``step drag duration_s=2``, ``drill`` to the working length, rounds) are the
-protocol runner's own steps (:class:`~dentibot.protocol.steps.StepExecutor`), run as a
+protocol runner's own steps (:class:`~dentibot.app.steps.StepExecutor`), run as a
 background *activity* against the running control task; the operator can pause, reverse,
 retract, stop or e-stop meanwhile. The live panel reads :meth:`SessionController.snapshot`
 (never blocks the control task).
@@ -31,12 +31,12 @@ import structlog
 
 from dentibot.errors import DentibotError
 from dentibot.io.devices import DevicesConfig, load_devices_config, open_devices
-from dentibot.protocol.runner import runtime_config, world_config
+from dentibot.app.runner import runtime_config, world_config
 from dentibot.protocol.schema import Protocol
-from dentibot.protocol.steps import StepExecutor, align_plan
+from dentibot.app.steps import StepExecutor, align_plan
 from dentibot.runtime.clock import DeadlineStats, LockStepClock, RealTimeClock
 from dentibot.runtime.control_task import Devices, Runtime
-from dentibot.runtime.harness import SimHarness
+from dentibot.app.simulated import SimHarness
 from dentibot.session.clock import (
     GateClosed,
     GatedClock,

@@ -13,7 +13,7 @@ from dentibot.io.devices import open_devices
 from dentibot.runtime.clock import RealTimeClock
 from dentibot.runtime.config import RuntimeConfig, Thresholds
 from dentibot.runtime.control_task import Devices, Runtime
-from dentibot.runtime.harness import SimHarness, tool_geometry_of, true_gravity_model
+from dentibot.app.simulated import SimHarness, tool_geometry_of, true_gravity_model
 from dentibot.sim.serve import ServePorts, VirtualDentiBot
 from dentibot.sim.world import World, WorldConfig
 

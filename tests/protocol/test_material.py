@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from dentibot.protocol.loader import ProtocolFileError, load_protocol
-from dentibot.protocol.runner import world_config
-from dentibot.protocol.schema import MaterialSpec
+from dentibot.app.runner import world_config
+from dentibot.protocol.schema import MATERIAL_NAMES, MaterialSpec
 from dentibot.sim.canal import MATERIAL_FIELDS, MATERIALS, CanalParams
 
 HEAD = "name: m\nsteps:\n  - calibrate_load: {}\n"
@@ -53,5 +53,6 @@ def test_bad_materials_are_named_with_their_limits(tmp_path, phantom, words):
 
 def test_the_schema_offers_exactly_the_simulators_materials_and_constants():
     assert set(MaterialSpec.model_fields) - {"name"} == set(MATERIAL_FIELDS)
+    assert set(MATERIAL_NAMES) == set(MATERIALS)
     for name in MATERIALS:
         assert MaterialSpec.model_validate(name).name == name

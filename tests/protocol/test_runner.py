@@ -10,7 +10,7 @@ import pytest
 import structlog
 
 from dentibot.protocol.loader import parse_protocol
-from dentibot.protocol.runner import EXIT_CODES, ProtocolRunner
+from dentibot.app.runner import EXIT_CODES, ProtocolRunner
 from dentibot.telemetry.reader import read_recording
 from dentibot.telemetry.schema import validate_row
 from dentibot.telemetry.summary import summarize_file

@@ -10,7 +10,7 @@ import pytest
 import structlog
 
 from dentibot.protocol.loader import load_protocol
-from dentibot.protocol.runner import ProtocolRunner
+from dentibot.app.runner import ProtocolRunner
 
 DIR = Path(__file__).parents[2] / "protocols"
 SHIPPED = sorted(p for p in DIR.glob("*.yaml") if p.name != "root-canal.yaml")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dentibot.runtime.config import RuntimeConfig, TreatmentPlan
-from dentibot.runtime.harness import SimHarness
+from dentibot.app.simulated import SimHarness
 from dentibot.sim.world import WorldConfig
 
 GAP_MM = 2.0  # the world's default orifice gap: the file tip starts 2 mm above the orifice

@@ -7,7 +7,7 @@ import inspect
 
 import pytest
 
-from dentibot.runtime.selftest import EXPECT, WIRE_FAULTS, run_fault, run_wire_fault
+from dentibot.app.selftest import EXPECT, WIRE_FAULTS, run_fault, run_wire_fault
 from dentibot.sim.faults import FAULTS
 
 

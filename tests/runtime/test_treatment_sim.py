@@ -10,7 +10,7 @@ from sim_runs import finished, harness
 
 from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
 from dentibot.runtime.config import TreatmentPlan
-from dentibot.runtime.strategies import StrategyParams
+from dentibot.states.strategies import StrategyParams
 from dentibot.sim.canal import CanalParams
 
 CANALS = {
@@ -196,7 +196,7 @@ async def test_dragging_moves_the_grip_at_k_over_b_per_newton():
 async def test_the_depth_limit_retracts_even_if_the_strategy_would_push_on():
     """A strategy that never stops feeding (a bug, or a mis-set working length): the
     supervisor's depth limit (working length + 0.5 mm) withdraws the file."""
-    from dentibot.runtime.strategies import Decision, DrillingStrategy, StrategyParams
+    from dentibot.states.strategies import Decision, DrillingStrategy, StrategyParams
 
     class PushForever(DrillingStrategy):
         def step(self, tau_mnm, depth_mm):
@@ -231,7 +231,7 @@ async def test_tcp_calibration_by_pedal_presses_finds_the_true_tool_tip():
     from scipy.spatial.transform import Rotation
 
     from dentibot.runtime.config import RuntimeConfig, ToolGeometry
-    from dentibot.runtime.harness import SimHarness
+    from dentibot.app.simulated import SimHarness
     from dentibot.sim.world import WorldConfig
 
     h = SimHarness(WorldConfig(seed=12), RuntimeConfig(tool=ToolGeometry(tip_6_mm=(0, 0, 80.0)),

@@ -19,7 +19,13 @@ from dentibot.runtime.clock import LockStepClock
 from dentibot.runtime.config import RuntimeConfig, ToolGeometry
 from dentibot.runtime.control_task import Devices, Runtime
 from dentibot.sim.devices import make_devices
+from dentibot.sim.patient import SQUARE_MM, StewartSquare
 from dentibot.sim.world import World, WorldConfig
+
+#: The parts of the simulated world that workflows set up themselves (experiment 1's Stewart
+#: platform square), handed on so that nothing above this layer imports the simulator.
+__all__ = ["SQUARE_MM", "SimHarness", "StewartSquare", "World", "WorldConfig",
+           "tool_geometry_of", "true_gravity_model"]
 
 
 def tool_geometry_of(world: World) -> ToolGeometry:

@@ -13,13 +13,12 @@ import argparse
 import asyncio
 import sys
 
+from dentibot.cli.common import user_errors
 from dentibot.io.devices import load_devices_config
 from dentibot.protocol.loader import load_protocol
 
 
 def cmd_session(args: argparse.Namespace) -> int:
-    from dentibot.cli import user_errors
-
     return user_errors(_session)(args)
 
 

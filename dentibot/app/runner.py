@@ -1,7 +1,7 @@
 """Run a validated protocol end to end: on the built-in simulator in lock-step time (default),
 or on devices from a configuration (wire simulators or hardware) in real time.
 
-Each step (:mod:`dentibot.protocol.steps`) drives the runtime through operator commands only
+Each step (:mod:`dentibot.app.steps`) drives the runtime through operator commands only
 (no step bypasses the state machine, the limits or the supervisor). Every tick goes to the MCAP recorder and to the live
 summary; both see the same rows, so ``dentibot report`` on the file prints the same summary.
 Cancelling the run (Ctrl-C) stops it safely: file stopped, file withdrawn from the canal where
@@ -22,11 +22,11 @@ import structlog
 from dentibot.errors import ConfigError
 from dentibot.io.devices import DevicesConfig, open_devices
 from dentibot.protocol.schema import Protocol
-from dentibot.protocol.steps import Aborted, StepExecutor
+from dentibot.app.steps import Aborted, StepExecutor
 from dentibot.runtime.clock import RealTimeClock
 from dentibot.runtime.config import RuntimeConfig, Thresholds, ToolGeometry, TreatmentPlan
 from dentibot.runtime.control_task import Devices, Runtime
-from dentibot.runtime.harness import SimHarness
+from dentibot.app.simulated import SimHarness
 from dentibot.sim.canal import CanalParams, material_params
 from dentibot.sim.ftsensor import FTSensorParams
 from dentibot.sim.nitifile import NiTiFile

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from dentibot.runtime.config import RuntimeConfig, TreatmentPlan
 from dentibot.runtime.control_task import Devices
-from dentibot.runtime.harness import SimHarness
+from dentibot.app.simulated import SimHarness
 from dentibot.sim.faults import FAULTS, FaultInjector
 from dentibot.sim.world import WorldConfig
 from dentibot.telemetry.reader import read_recording
@@ -130,7 +130,7 @@ async def run_wire_fault(name: str, seed: int = 1, settle_s: float = 0.3,
     from dentibot.runtime.clock import RealTimeClock
     from dentibot.runtime.config import Thresholds
     from dentibot.runtime.control_task import Runtime
-    from dentibot.runtime.harness import tool_geometry_of, true_gravity_model
+    from dentibot.app.simulated import tool_geometry_of, true_gravity_model
     from dentibot.sim.serve import ServePorts, VirtualDentiBot
     from dentibot.sim.world import World
 

@@ -29,7 +29,7 @@ from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
 from dentibot.experiments import alignment as al
 from dentibot.experiments import preclinical as pc
 from dentibot.experiments.common import default_workers, run_all
-from dentibot.sim.canal import MATERIALS
+from dentibot.protocol.schema import MATERIAL_NAMES
 
 
 def _f(x, fmt="{:.2f}", none="--") -> str:
@@ -479,7 +479,7 @@ def add_parser(sub) -> None:
                    help="drilling strategy: automated (thesis 5.4), or an ablation: feedrate "
                         "(no reversal), reversal (no feedrate control), none (neither); all: "
                         "the four side by side (four times the runs)")
-    p.add_argument("--material", choices=list(MATERIALS), default=pc.MATERIAL,
+    p.add_argument("--material", choices=list(MATERIAL_NAMES), default=pc.MATERIAL,
                    help=f"phantom material (default {pc.MATERIAL}, the thesis's phantoms)")
     p.add_argument("--torque-limit", type=_torque_limit, default=None, metavar="MNM",
                    help="the runtime's hard file-torque limit (default: 90 %% of the "

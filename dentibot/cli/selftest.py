@@ -15,7 +15,7 @@ import json
 from rich.console import Console
 from rich.table import Table
 
-from dentibot.runtime.selftest import WIRE_FAULTS, run_catalogue, run_wire_fault
+from dentibot.app.selftest import WIRE_FAULTS, run_catalogue, run_wire_fault
 
 
 async def _all(args) -> list:

@@ -14,9 +14,10 @@ import sys
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
+from dentibot.cli.common import user_errors
 from dentibot.io.devices import load_devices_config
 from dentibot.protocol.loader import load_protocol
-from dentibot.protocol.runner import EXIT_CODES, ProtocolRunner, step_duration_s
+from dentibot.app.runner import EXIT_CODES, ProtocolRunner, step_duration_s
 from dentibot.telemetry import summary_json, summary_table
 
 
@@ -31,8 +32,6 @@ def _figures_text(f: dict) -> str:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from dentibot.cli import user_errors
-
     return user_errors(_run)(args)
 
 

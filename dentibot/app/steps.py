@@ -19,7 +19,7 @@ from dentibot.control.admittance import EXPERIMENT_1
 from dentibot.control.feedrate import FeedrateParams
 from dentibot.runtime.config import TreatmentPlan
 from dentibot.runtime.control_task import Runtime
-from dentibot.runtime.strategies import StrategyParams, make_strategy
+from dentibot.states.strategies import StrategyParams, make_strategy
 
 log = structlog.get_logger("dentibot.protocol")
 
