@@ -14,7 +14,7 @@ change + admittance step + tool Jacobian + joint rates + limits) and, in the sam
 
 with the ratios (baseline median / ours). The three Jacobians are checked equal first, so the
 comparison is between implementations of the same maths.
-Target (issue 2): <= 50 us median on the project's 2-core machines.
+Target: <= 50 us median on the project's 2-core machines.
 """
 
 from __future__ import annotations

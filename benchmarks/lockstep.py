@@ -15,7 +15,7 @@ on :class:`~dentibot.app.simulated.SimHarness`, then one drilling round driven a
 
 The speed factor is simulated seconds per wall second; the world's share is timed around
 ``World.step``. ``--profile S`` adds a cProfile breakdown of an ``S``-second round (no sink).
-Target (issue 10): >= 50x real time (40 us per 2 ms tick).
+Target: >= 50x real time (40 us per 2 ms tick).
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@
    EPOS4 SYNCs, arm cycles without joints); CPU of both processes.
 4. Beside it, the same loop paced by plain ``asyncio.sleep(period)`` (``--sleep-seconds``).
 
-Targets (issue 5): 500 Hz p99 lateness <= 100 us, zero overruns over 60 s.
+Targets: 500 Hz p99 lateness <= 100 us, zero overruns over 60 s.
 """
 
 from __future__ import annotations

@@ -47,7 +47,7 @@ from benchutil import fmt, load_average, machine
 
 SECTIONS = ("control", "world", "lockstep", "recording", "realtime")
 
-#: Targets of the other issues: (JSON key, comparison, bound).
+#: The speed targets: (JSON key, comparison, bound).
 TARGETS = {
     "tick_us_median": ("<=", 50.0),
     "world_step_us_median": ("<=", 30.0),

@@ -19,3 +19,27 @@ def test_selftest_faults_json_lists_every_fault_with_the_required_keys(capsys):
     for r in out:
         assert {"fault", "detected_ms", "final_state", "samples_lost"} <= set(r)
         assert r["samples_lost"] == 0
+
+
+def test_sim_serve_passes_the_node_id_to_the_epos4_simulator(monkeypatch, capsys):
+    import dentibot.cli.sim as cli_sim
+
+    seen = {}
+
+    class FakeBot:
+        def __init__(self, world_config, ports):
+            seen["ports"] = ports
+            self.ports = {"host": ports.host, "meca_port": 1, "meca_monitor_port": 2,
+                          "netft_port": 3, "netft_http_port": 4, "modbus_port": 5,
+                          "can_port": 6, "can_channel": "vcan0"}
+
+        async def __aenter__(self):
+            return self
+
+        async def __aexit__(self, *exc):
+            return False
+
+    monkeypatch.setattr(cli_sim, "VirtualDentiBot", FakeBot)
+    assert main(["sim", "serve", "--node-id", "7", "--duration", "0"]) == 0
+    assert seen["ports"].node_id == 7
+    assert "EPOS4 node 7" in capsys.readouterr().out

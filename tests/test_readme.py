@@ -44,3 +44,13 @@ def test_the_main_job_runs_to_completion():
     result = json.loads(out.stdout)
     assert result["status"] == "ok" and result["fractures"] == 0
     assert result["completeness"] > 0.8
+
+
+def test_the_layout_table_names_every_package_of_the_tree_and_no_other():
+    readme = (ROOT / "README.md").read_text()
+    layout = readme.split("## Layout", 1)[1].split("\n## ", 1)[0]
+    listed = set(re.findall(r"^\| `dentibot/(\w+)/` \|", layout, flags=re.MULTILINE))
+    packages = {p.parent.name for p in (ROOT / "dentibot").glob("*/__init__.py")}
+    assert listed == packages, (sorted(listed - packages), sorted(packages - listed))
+    for module in re.findall(r"`(\w+)` \(", layout):
+        assert list((ROOT / "dentibot").glob(f"*/{module}.py")), module

@@ -8,7 +8,7 @@ built-in simulator, in lock-step simulated time, with the thesis's numbers along
 ``--seeds N --workers W`` runs N seeded patients / phantom sets in W local processes and
 reports medians and worst cases. ``--json`` prints one JSON object (progress goes to stderr).
 Figures (PNG) go to ``--out`` (default runs/experiments/<experiment>).
-Exit status: 0 every claim of the issue shown (an ablation claims none), 1 a claim not
+Exit status: 0 every claim of the thesis shown (an ablation claims none), 1 a claim not
 shown (the table says which), 2 bad input, 130 aborted (Ctrl-C).
 """
 
@@ -49,7 +49,7 @@ def _progress(console: Console | None, text: str) -> None:
 
 
 def _checks_table(checks) -> Table:
-    t = Table(title="What the issue asks to show", show_lines=False)
+    t = Table(title="The thesis's claims, checked on these runs", show_lines=False)
     t.add_column("claim")
     t.add_column("shown", justify="center")
     t.add_column("figures")

@@ -18,7 +18,7 @@ from dentibot.sim.world import WorldConfig
 async def _serve(args: argparse.Namespace) -> None:
     ports = ServePorts(host=args.host, meca_port=args.meca_port, netft_port=args.netft_port,
                        netft_http_port=args.netft_http_port, modbus_port=args.modbus_port,
-                       can_port=args.can_port)
+                       can_port=args.can_port, node_id=args.node_id)
     async with VirtualDentiBot(WorldConfig(seed=args.seed, motion=args.motion), ports) as bot:
         # Everything built so far leaves the collector's view: a full collection over it took
         # 35-85 ms under load, long enough for the F/T stream to look stale to a driver.

@@ -1,4 +1,4 @@
-"""One control computation, the maths of a 2 ms tick (ARCHITECTURE "The tick", steps 2-4).
+"""One control computation, the maths of a 2 ms tick (docs/architecture.md, "The tick", steps 2-4).
 
 Raw sensor wrench in {S} -> offset and gravity removed (eq 4.18) -> moved to the active
 reference point in {H} (eq 4.26-4.31) -> plus the desired wrench f_d (self-alignment, eq in

@@ -402,7 +402,7 @@ def population_summary(runs: list[AlignmentRun]) -> dict:
 
 
 def checks(runs: dict[str, list[AlignmentRun]]) -> list[Check]:
-    """The issue's claims for experiment 1 on these runs (worst case over a population; a run
+    """The thesis's claims for experiment 1 on these runs (worst case over a population; a run
     that did not end ok shows no claim)."""
     out = []
     bad = [f"{r.spec.config}/{r.spec.seed}: {r.status} {r.reason}".strip()

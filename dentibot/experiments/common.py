@@ -120,7 +120,7 @@ def distribution(values: Iterable[float | None], worst: str = "max") -> dict[str
 
 @dataclass(frozen=True)
 class Check:
-    """One of the issue's "must show" claims, and whether this run shows it."""
+    """One of the thesis's claims for an experiment, and whether this run shows it."""
 
     claim: str
     passed: bool

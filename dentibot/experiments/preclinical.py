@@ -382,7 +382,7 @@ def ablation_checks(by_strategy: dict[str, list[PhantomRun]]) -> list[Check]:
 
 
 def checks(runs: list[PhantomRun]) -> list[Check]:
-    """The issue's claims for experiment 2 (automated algorithm, all six phantoms)."""
+    """The thesis's claims for experiment 2 (automated algorithm, all six phantoms)."""
     by_member: dict[int, list[PhantomRun]] = {}
     for r in runs:
         by_member.setdefault(r.spec.phantom.member, []).append(r)

@@ -11,7 +11,7 @@ Wire format (programming manual for firmware 9.x, section "TCP/IP communication"
 - responses: ``[NNNN][payload]`` + NUL; 1xxx command errors, 2xxx responses and data, 3xxx
   status messages. Real-time monitoring payloads (22xx) start with a timestamp in microseconds.
 
-Sources for the code table: ``/work/shared/reference/devices.md``; the Meca500 programming
+Sources for the code table: the project's device notes; the Meca500 programming
 manual for firmware 9.2 (tables "command error messages", "command responses", "monitoring port
 messages", and the ``SetVelTimeout`` page); Mecademic's public Python client (``mecademicpy``,
 ``mx_robot_def.py``, status code list). ``confirmed=False`` marks what none of them states.
@@ -148,7 +148,7 @@ RESPONSE_CODES: dict[int, CodeInfo] = {info.code: info for info in (
         (3004, "END_OF_MOVEMENT", "End of movement."),
         (3005, "MOTION_ERROR", "Motion error (collision or overload); it can be reset.", True),
         (3012, "END_OF_BLOCK", "End of block: motion queue empty and robot at rest."),
-        # The brief called 3026 "robot in error"; Mecademic's list says a maintenance check.
+        # 3026 is sometimes read as "robot in error"; Mecademic's list says a maintenance check.
         (3026, "MAINTENANCE_CHECK", "Hardware problem detected; contact Mecademic support."),
         (3030, "CHECKPOINT_REACHED", "Checkpoint reached."),
         (3040, "CHECKPOINT_DISCARDED", "Checkpoint discarded (motion cleared or error)."),

@@ -1,4 +1,4 @@
-"""The control task's clocks (ARCHITECTURE "Time") and its deadline accounting.
+"""The control task's clocks (docs/architecture.md, "Time") and its deadline accounting.
 
 - :class:`RealTimeClock`: absolute deadlines ``t0 + k * period``. It sleeps coarsely with
   ``asyncio.sleep`` until ``spin_s`` before the deadline, then finishes by yielding to the loop

@@ -1,4 +1,4 @@
-"""The fixed-period control task (ARCHITECTURE "The tick").
+"""The fixed-period control task (docs/architecture.md, "The tick").
 
 Every period:
 
@@ -15,8 +15,8 @@ Every period:
    Jacobian -> limits -> MoveJointsVel; the file command;
 6. one telemetry row; deadline accounting.
 
-Events are detected before the commands of the same tick (a change of the ARCHITECTURE's
-order, on purpose): a patient movement, a torque spike or an emergency stop seen in tick k is
+Events are detected before the commands of the same tick (as docs/architecture.md
+orders them): a patient movement, a torque spike or an emergency stop seen in tick k is
 acted on by the commands of tick k, not k + 1.
 """
 

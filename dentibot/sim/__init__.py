@@ -1,4 +1,4 @@
-"""The simulated world (issue 3): arm, F/T sensor, handpiece, NiTi file, tooth phantom, patient.
+"""The simulated world: arm, F/T sensor, handpiece, NiTi file, tooth phantom, patient.
 
 ``World.step()`` advances everything by exactly one control period; the device objects in
 :mod:`dentibot.sim.devices` implement the :mod:`dentibot.io` protocols over a World.

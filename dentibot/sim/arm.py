@@ -31,7 +31,7 @@ class ArmParams:
     vel_timeout_s: float = 0.05
     # assumption: encoder/reading resolution 0.001 deg (the Meca500 reports 3 decimals).
     encoder_res_deg: float = 0.001
-    # brief: wrist singularity when |sin q5| < sin(0.5 deg).
+    # the wrist is singular when |sin q5| < sin(0.5 deg).
     wrist_singularity_min: float = math.sin(math.radians(0.5))
     # assumption: below 0.001 deg/s with a zero reference the joint is at rest (brakes on).
     rest_deg_s: float = 0.001

@@ -15,7 +15,7 @@ schemas, so the file opens in Foxglove):
 ``/run/end``    once at the end: ``{status, reason, duration_s}``
 ==============  ==================================================================
 
-Units follow ARCHITECTURE.md: mm, deg, N, sensor torques N*m, file torque mNm, time s;
+Units follow docs/architecture.md: mm, deg, N, sensor torques N*m, file torque mNm, time s;
 lateness and compute time in microseconds.
 """
 

@@ -2,7 +2,7 @@
 figures that follow from the sizes alone (tick counts, ratios, bytes per minute).
 
 No speed is asserted here (speed belongs in benchmarks/); this only checks that the benchmark
-suite runs and reports what the issue asks for.
+suite runs and reports its figures.
 """
 
 from __future__ import annotations
