@@ -136,7 +136,7 @@ def measure(n: int = 20000) -> dict:
 
     out = {"n": n, "rtb_version": rtb_version()}
     full = {
-        "dentibot": lambda: comp.step(q, raw, f_d),
+        "dentibot": lambda: comp.step(q, raw, f_d[2]),
         "numpy_dh": lambda: baseline_numpy_dh(q, tool, *args),
     }
     jac = {

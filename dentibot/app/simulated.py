@@ -9,6 +9,7 @@ depth, completeness, fracture); the control never reads it.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 
 import numpy as np
@@ -16,15 +17,16 @@ import numpy as np
 from dentibot.control.kinematics import euler_xyz_deg
 from dentibot.control.wrench import GravityModel
 from dentibot.runtime.clock import LockStepClock
-from dentibot.runtime.config import RuntimeConfig, ToolGeometry
+from dentibot.runtime.config import RuntimeConfig, ToolGeometry, TreatmentPlan
 from dentibot.runtime.control_task import Devices, Runtime
 from dentibot.sim.devices import make_devices
 from dentibot.sim.patient import SQUARE_MM, StewartSquare
+from dentibot.sim.serve import ServePorts, VirtualDentiBot
 from dentibot.sim.world import World, WorldConfig
 
 #: The parts of the simulated world that workflows set up themselves (experiment 1's Stewart
 #: platform square), handed on so that nothing above this layer imports the simulator.
-__all__ = ["SQUARE_MM", "SimHarness", "StewartSquare", "World", "WorldConfig",
+__all__ = ["SQUARE_MM", "SimHarness", "StewartSquare", "World", "WorldConfig", "serve_wire",
            "tool_geometry_of", "true_gravity_model"]
 
 
@@ -47,7 +49,11 @@ def true_gravity_model(world: World) -> GravityModel:
 
 
 class SimHarness:
-    """World + devices + lock-step clock + runtime, ready to run."""
+    """World + devices + lock-step clock + runtime, ready to run.
+
+    ``config`` defaults to one that agrees with the world: its tool geometry, and a treatment
+    plan with the world's orifice gap and working length (depth 0 is the canal orifice).
+    """
 
     def __init__(self, world: World | WorldConfig | None = None,
                  config: RuntimeConfig | None = None, *, calibrated: bool = True,
@@ -55,7 +61,11 @@ class SimHarness:
         if not isinstance(world, World):
             world = World(world)
         self.world = w = world
-        cfg = config or RuntimeConfig()
+        # Without a configuration the plan is the simulated tooth's: the orifice gap the world
+        # puts between the tip and the canal, and the canal's working length.
+        cfg = config or RuntimeConfig(plan=TreatmentPlan(
+            working_length_mm=w.canal.p.working_length_mm,
+            orifice_gap_mm=w.config.orifice_gap_mm))
         if cfg.tool == ToolGeometry():
             cfg = dataclasses.replace(cfg, tool=tool_geometry_of(w))
         self.config = cfg
@@ -78,3 +88,14 @@ class SimHarness:
             "completeness": w.completeness(),
             "fractured": w.fractured is not None,
         }
+
+
+@contextlib.asynccontextmanager
+async def serve_wire(world: World | WorldConfig | None = None):
+    """The four wire simulators over ``world`` on free ports of 127.0.0.1, in real time;
+    yields the running :class:`~dentibot.sim.serve.VirtualDentiBot` (its
+    ``devices_config()`` is what the drivers connect to)."""
+    ports = ServePorts(host="127.0.0.1", meca_port=0, netft_port=0, netft_http_port=0,
+                       modbus_port=0, can_port=0)
+    async with VirtualDentiBot(world, ports) as bot:
+        yield bot

@@ -35,6 +35,7 @@ import structlog
 from dentibot.control.admittance import DRAGGING, SELF_ALIGNMENT, AdmittanceController
 from dentibot.control.feedrate import FeedrateController, file_torque_estimate_mnm
 from dentibot.control.kinematics import Meca500, euler_xyz_deg
+from dentibot.control.tick import admittance_command, external_wrench_h, forward_chain
 from dentibot.control.wrench import GravityModel, WrenchTransform
 from dentibot.errors import DentibotError, DeviceFault
 from dentibot.io.interfaces import Arm, AuxIO, ForceSensor, Handpiece
@@ -286,17 +287,10 @@ class Runtime:
         return est, findings
 
     def _estimate(self, q: np.ndarray, raw: np.ndarray, m) -> Estimate:
-        ref = self._ref or "B"
-        kin = self.admittance.kinematics(q)
+        kin, self._R06 = forward_chain(self.admittance, q)
         self._kin = kin
-        if self.gravity is not None:
-            cols = kin[1][-1][0]
-            R06 = np.array(cols).T
-            self._R06 = R06
-            wrench_h = self._to_h[ref].apply(self.gravity.external_wrench(raw, R06))
-        else:
-            self._R06 = np.array(kin[1][-1][0]).T
-            wrench_h = _ZERO6
+        wrench_h = _ZERO6 if self.gravity is None else external_wrench_h(
+            self.gravity, self._to_h[self._ref or "B"], raw, self._R06)
         hp = self.cfg.handpiece
         tau = file_torque_estimate_mnm(m.current_a, m.velocity_rpm, hp.efficiency,
                                        hp.friction_current_a)
@@ -515,11 +509,8 @@ class Runtime:
         if mode.arm == "hold":
             await arm.move_joints_vel(_ZERO6)
             return _ZERO6
-        fz = self._fz(mode)
-        f_in = est.wrench_h.copy()
-        f_in[2] += fz
-        self._fz_now = fz
-        cmd = self.admittance.step(est.q_deg, f_in, self._kin)
+        cmd = admittance_command(self.admittance, est.q_deg, est.wrench_h, self._fz(mode),
+                                 self._kin)
         bad = self.supervisor.check_command(cmd.qdot_deg_s, cmd.twist, self._speed_limits)
         if bad:
             self._pending.extend(("fault", str(f)) for f in bad)

@@ -50,7 +50,7 @@ def results():
 
 
 @pytest.mark.timeout(90)
-def test_json_has_the_issue_keys_and_is_serialisable(results):
+def test_json_has_the_expected_keys_and_is_serialisable(results):
     _, _, flat = results
     for key in (*REQUIRED, *BASELINES):
         assert key in flat, key

@@ -46,8 +46,8 @@ def test_tip_force_is_recovered_at_the_tip_and_drives_the_admittance(q):
     force_h = np.array([0.4, -0.3, 0.2])
     raw = sensor_reading(robot, gravity, q, force_h)
     f_d = np.array([0, 0, 0.5, 0, 0, 0])
-    comp.step(q, raw, f_d)
-    res = comp.step(q, raw, f_d)
+    comp.step(q, raw, f_d[2])
+    res = comp.step(q, raw, f_d[2])
     np.testing.assert_allclose(res.wrench_h[:3], force_h, atol=1e-12)
     np.testing.assert_allclose(res.wrench_h[3:], 0.0, atol=1e-12)  # no moment about the tip
     # Deadbeat self-alignment filter: the second sample is the steady twist k/b (F + f_d).

@@ -1,4 +1,4 @@
-"""The automated root canal algorithm on the lock-step simulator (issue "must show")."""
+"""The automated root canal algorithm on the lock-step simulator."""
 
 from __future__ import annotations
 
@@ -293,3 +293,33 @@ async def test_a_file_bound_while_retracting_is_withdrawn_without_turning():
     assert abs(h.world.handpiece.omega_rpm) < 1.0 and h.world.handpiece.cmd_rpm == 0.0
     assert rt.state != "fault" and not any(r["fractured"] for r in after)
     assert after[-1]["true_depth_mm"] < 0.5           # withdrawn: back at the orifice
+
+
+async def test_the_runtime_runs_the_tick_chain_of_control_tick(monkeypatch):
+    """What the control-tick benchmark times (dentibot.control.tick) is what the runtime runs:
+    every admittance tick goes through its functions, and their output is what the arm gets."""
+    import dentibot.runtime.control_task as ct
+    from dentibot.control import tick
+
+    calls = {"wrench": 0, "command": []}
+
+    def wrench(*a):
+        calls["wrench"] += 1
+        return tick.external_wrench_h(*a)
+
+    def command(*a):
+        cmd = tick.admittance_command(*a)
+        calls["command"].append(cmd.qdot_deg_s.copy())
+        return cmd
+
+    monkeypatch.setattr(ct, "external_wrench_h", wrench)
+    monkeypatch.setattr(ct, "admittance_command", command)
+    h, rows = harness(seed=3)
+    rt = h.runtime
+    assert await rt.command("align") is None
+    await rt.run(max_ticks=100)
+    # every tick, plus once more on entering self-alignment (its reference point B is set
+    # in that tick, and the wrench is moved to it again)
+    assert calls["wrench"] == 101
+    assert len(calls["command"]) == 100
+    np.testing.assert_array_equal(rows[-1]["qdot_cmd_deg_s"], calls["command"][-1])
