@@ -148,7 +148,7 @@ def run_variant(variant: str, seconds: float, protocol=None, out_dir: Path | Non
     out.update(variant=variant, sim_seconds=sim_s, ticks=ticks, wall_s=wall,
                close_s=wall - wall_run, speed_factor=sim_s / wall, us_per_tick=1e6 * wall / ticks,
                world_us_per_tick=(timed.ns - step_ns0) / 1e3 / ticks,
-               state=rt.state, reversals=rt.reversals,
+               state=rt.state, reversals=rt.ctx.reversals,
                completeness=h.world.completeness(), fractured=h.world.fractured is not None)
     if prof is not None:
         out["profile"] = _profile_table(prof, ticks)

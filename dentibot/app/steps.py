@@ -62,7 +62,7 @@ def apply_drill(rt: Runtime, spec) -> None:
     rt.cfg = dataclasses.replace(
         rt.cfg, plan=dataclasses.replace(rt.cfg.plan, strategy=strategy),
         handpiece=dataclasses.replace(rt.cfg.handpiece, drilling_rpm=spec.rpm))
-    rt.strategy = make_strategy(strategy, rt.cfg.plan.working_length_mm, rt.ts)
+    rt.ctx.strategy = make_strategy(strategy, rt.cfg.plan.working_length_mm, rt.ts)
 
 
 def _at_rest(rt: Runtime) -> bool:

@@ -275,7 +275,7 @@ def run_phantom(spec: PreclinicalSpec) -> PhantomRun:
         fracture_cause=None if w.fractured is None else w.fractured.cause,
         peak_torque_mnm=peak[0],
         peak_torque_estimate_mnm=peak[1],
-        reversals=runner.rt.reversals, limit_reversals=limit, passes=len(arrivals),
+        reversals=runner.rt.ctx.reversals, limit_reversals=limit, passes=len(arrivals),
         depth_max_mm=float(depth.max()) if len(depth) else float("nan"),
         t_first_wl_s=t_wl,
         stalled_s=stalled_seconds(tr["t"], depth, tr["feeding"], t_wl),

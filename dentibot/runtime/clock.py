@@ -14,6 +14,8 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import gc
 import bisect
 import math
 import time
@@ -166,3 +168,33 @@ class LockStepClock(Clock):
         if self._k % self._yield_every == 0:
             await asyncio.sleep(0)   # let the other tasks (UI, operator commands) run
         return 0.0
+
+
+@contextlib.contextmanager
+def quiet_collector(realtime: bool):
+    """The garbage collector's policy while a control loop runs; yields ``collect(n)`` to call
+    in the slack after tick ``n``.
+
+    In real time the cyclic collector runs only there (young generation every 50 ticks, older
+    every 5000), never in the middle of a tick: a full collection triggered by allocation can
+    take milliseconds (tens with the simulators in the same process). Objects alive at the
+    start are frozen out of the collector's sight (``gc.freeze``, which collects nothing
+    itself). In lock-step time nothing changes.
+    """
+    if not realtime:
+        yield lambda n: None
+        return
+    was_enabled = gc.isenabled()
+    gc.freeze()
+    gc.disable()
+
+    def collect(n: int) -> None:
+        if n % 50 == 0:
+            gc.collect(1 if n % 5000 == 0 else 0)
+
+    try:
+        yield collect
+    finally:
+        gc.unfreeze()
+        if was_enabled:
+            gc.enable()

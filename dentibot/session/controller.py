@@ -789,7 +789,7 @@ class SessionController:
         if now - t0 >= 0.5:                   # ticks per wall second over >= 0.5 s
             self._rate_hz = (rt.ticks - k0) / (now - t0)
             self._rate = (now, rt.ticks)
-        strat = rt.strategy.p
+        strat = rt.ctx.strategy.p
         wh = row.get("wrench_h")
         return PanelData(
             connected=self.connected, source=self.source, state=rt.state,
@@ -804,7 +804,7 @@ class SessionController:
             else None,
             motor_rpm=row.get("motor_rpm"),
             patient_moved=rt.state == "treating.patient_moved",
-            patient_episodes=rt.patient_episodes, reversals=rt.reversals,
+            patient_episodes=rt.ctx.patient_episodes, reversals=rt.ctx.reversals,
             realtime=rt.clock.realtime, period_s=rt.ts, rate_hz=self._rate_hz,
             timing={**rt.stats.as_dict(), "skipped": rt.clock.skipped},
             recording=str(self.recorder.path) if self.recorder is not None else None,

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from dentibot.control.admittance import PRESETS, AdmittanceParams
+
 
 @dataclass(frozen=True)
 class Mode:
@@ -24,6 +26,27 @@ class Mode:
     ref: str | None = None
     feed: str = "zero"
     file: str = "stop"
+
+
+def admittance_params(mode: Mode, plan) -> AdmittanceParams:
+    """The admittance parameters of ``mode``: its preset (Table 4.3), or for self-alignment the
+    plan's own (Table 6.4 configurations) when it has them."""
+    if mode.admittance == "self_alignment" and mode.feed == "align" \
+            and plan.align_params is not None:
+        return plan.align_params
+    return PRESETS[mode.admittance]
+
+
+def file_command(mode: Mode, drilling_rpm: float, align_rpm: float) -> tuple:
+    """What the handpiece is told on entering a state of ``mode``: ``("vel", rpm)``,
+    ``("reverse",)`` (the inverse rotation, once) or ``("stop",)``."""
+    if mode.file == "forward":
+        return ("vel", drilling_rpm)
+    if mode.file == "align":
+        return ("vel", align_rpm)
+    if mode.file == "reverse":
+        return ("reverse",)
+    return ("stop",)
 
 
 _DRILL = {"arm": "admittance", "admittance": "self_alignment", "ref": "B"}

@@ -199,6 +199,11 @@ class Treatment:
             return "unknown command"
         return "it needs state " + " or ".join(sources)
 
+    def latched(self, cause: str | None) -> bool:
+        """In ``fault`` already for a cause of the same kind ("stale_ft: ..." -> "stale_ft")."""
+        kind = (cause or "").split(":", 1)[0]
+        return self.state == "fault" and kind in {c.split(":", 1)[0] for c in self.fault_causes}
+
     def in_state(self, prefix: str) -> bool:
         """True in ``prefix`` or any of its sub-states."""
         return self.state == prefix or self.state.startswith(prefix + ".")

@@ -95,7 +95,7 @@ async def test_patient_movement_stops_the_file_tracks_and_resumes():
     assert float(np.linalg.norm(end["wrench_h"][:2])) < rt.cfg.thresholds.patient_release_n
     # and resumed drilling afterwards
     assert any(r["state"] == "treating.drilling.feeding" for r in rows[first_over:])
-    assert rt.patient_episodes >= 1 and not any(r["fractured"] for r in rows)
+    assert rt.ctx.patient_episodes >= 1 and not any(r["fractured"] for r in rows)
 
 
 async def test_emergency_stop_halts_arm_and_file_in_one_tick_and_latches():
@@ -205,7 +205,7 @@ async def test_the_depth_limit_retracts_even_if_the_strategy_would_push_on():
     h, rows = harness(seed=10, canal=CanalParams(working_length_mm=6.0),
                       plan=TreatmentPlan(working_length_mm=6.0, orifice_gap_mm=2.0))
     rt = h.runtime
-    rt.strategy = PushForever(StrategyParams(), 6.0, rt.ts)
+    rt.ctx.strategy = PushForever(StrategyParams(), 6.0, rt.ts)
     await rt.command("drill")
     await rt.run(until=lambda r: r.state != "treating.drilling.feeding", max_ticks=30_000)
     assert rt.state == "treating.retracting"
@@ -299,6 +299,7 @@ async def test_the_runtime_runs_the_tick_chain_of_control_tick(monkeypatch):
     """What the control-tick benchmark times (dentibot.control.tick) is what the runtime runs:
     every admittance tick goes through its functions, and their output is what the arm gets."""
     import dentibot.runtime.control_task as ct
+    import dentibot.runtime.estimate as estimate
     from dentibot.control import tick
 
     calls = {"wrench": 0, "command": []}
@@ -312,7 +313,7 @@ async def test_the_runtime_runs_the_tick_chain_of_control_tick(monkeypatch):
         calls["command"].append(cmd.qdot_deg_s.copy())
         return cmd
 
-    monkeypatch.setattr(ct, "external_wrench_h", wrench)
+    monkeypatch.setattr(estimate, "external_wrench_h", wrench)
     monkeypatch.setattr(ct, "admittance_command", command)
     h, rows = harness(seed=3)
     rt = h.runtime

@@ -108,11 +108,11 @@ async def test_a_refused_drill_leaves_the_running_strategy_alone(stepped):
     await c.advance(0.6)
     assert (await say(c, "drill tau_d=40")).kind == "ok"
     await c.advance(0.5)
-    strategy = c.runtime.strategy
+    strategy = c.runtime.ctx.strategy
     r = await say(c, "drill tau_d=20 strategy=none")
     # the machine refuses it while treating: the running pass goes on as it was
     assert r.kind == "refused" and "in state 'treating.drilling" in r.text
-    assert c.runtime.strategy is strategy and strategy.p.feedrate.tau_d_mnm == 40
+    assert c.runtime.ctx.strategy is strategy and strategy.p.feedrate.tau_d_mnm == 40
     assert c._activity_name == "drill" and c.runtime.cfg.handpiece.drilling_rpm == 60
     await say(c, "quit")
 

@@ -1,0 +1,73 @@
+"""What the control task reads and estimates each tick (docs/architecture.md, "The tick",
+steps 1-2): the devices it reads, and the estimate step 2 produces."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dentibot.control.feedrate import file_torque_estimate_mnm
+from dentibot.control.tick import external_wrench_h
+from dentibot.io.interfaces import Arm, AuxIO, ForceSensor, Handpiece
+
+_ZERO6 = np.zeros(6)
+
+
+@dataclass
+class Devices:
+    arm: Arm
+    ft: ForceSensor
+    motor: Handpiece
+    aux: AuxIO | None = None
+
+    async def read(self) -> tuple:
+        """Step 1: the newest sample of each device, ``(joints, wrench, motor, aux or None)``
+        (a device that cannot answer raises :class:`~dentibot.errors.DeviceFault`)."""
+        js = await self.arm.read()
+        w = await self.ft.read()
+        m = await self.motor.read()
+        return js, w, m, (await self.aux.read() if self.aux is not None else None)
+
+
+@dataclass
+class Estimate:
+    """What step 2 of the tick produced (also the live view's figures)."""
+
+    q_deg: np.ndarray
+    wrench_s: np.ndarray       # raw sensor reading (N, N*m)
+    wrench_h: np.ndarray       # external wrench at the reference point, {H}
+    force_norm_n: float        # ||{H} f|| (fig 5.6: forces and torques, N and N*m)
+    file_torque_mnm: float
+    motor_rpm: float
+    motor_current_a: float
+    motor_pos_deg: float
+    tip_0: tuple
+    axis_0: tuple
+    depth_mm: float | None
+
+
+class MotorView:
+    """The motor figures of an Estimate, shaped like a MotorState for re-estimation."""
+
+    def __init__(self, est: Estimate) -> None:
+        self.current_a = est.motor_current_a
+        self.velocity_rpm = est.motor_rpm
+        self.position_deg = est.motor_pos_deg
+
+
+def estimate(q: np.ndarray, raw: np.ndarray, m, chain, r_0_6: np.ndarray, kin, gravity, to_h,
+             handpiece, depth_ref) -> Estimate:
+    """Step 2 of the tick: the external wrench at the reference point in {H} (zero until a
+    gravity model is known), the file torque from the motor current (eq 5.4-5.5), the tip and
+    tool axis in {0}, and the depth along ``depth_ref`` = (orifice point, canal axis)."""
+    wrench_h = _ZERO6 if gravity is None else external_wrench_h(gravity, to_h, raw, r_0_6)
+    tau = file_torque_estimate_mnm(m.current_a, m.velocity_rpm, handpiece.efficiency,
+                                   handpiece.friction_current_a)
+    tip, axis = kin.tool_tip_axis(chain[1])
+    depth = None
+    if depth_ref is not None:
+        o, a = depth_ref
+        depth = (tip[0] - o[0]) * a[0] + (tip[1] - o[1]) * a[1] + (tip[2] - o[2]) * a[2]
+    return Estimate(q, raw, wrench_h, float(np.linalg.norm(wrench_h)), tau,
+                    m.velocity_rpm, m.current_a, m.position_deg, tip, axis, depth)

@@ -1,0 +1,317 @@
+"""What each state of the treatment machine does, in one place per state: what it sets up on
+entry, which events it detects every tick. What it asks of the arm and the file is data
+(:data:`dentibot.states.modes.MODES`); the control task applies both.
+
+A behaviour sees the running procedure through ``rt`` (the control task: its configuration
+``cfg``, period ``ts``, tick count ``ticks``, current ``mode`` and file command ``file_cmd``,
+the forward chain ``chain`` and flange orientation ``r_0_6`` of this tick, the joint limits
+``kin.joint_limits_deg``, and ``set_gravity`` / ``set_tool_tip`` for calibration results), and
+keeps what outlives one tick in :class:`Context` (shared by the states) or in itself (its own
+counters). Events are ``(trigger, cause)`` pairs handed to the state machine.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dentibot.control.feedrate import FeedrateController
+from dentibot.states.load_calibration import LoadCalibration, TcpRoutine
+from dentibot.states.strategies import Decision, DrillingStrategy
+from dentibot.states.treatment import LEAF_STATES
+
+Event = tuple[str, "str | None"]
+
+#: The leaf states of the treatment machine (values: the machine's dotted names, so a State
+#: compares equal to the name the machine reports).
+State = enum.StrEnum("State", {name.upper().replace(".", "_"): name for name in LEAF_STATES})
+
+
+@dataclass
+class Context:
+    """What the states share across ticks of one procedure."""
+
+    strategy: DrillingStrategy
+    #: (orifice point, canal axis) in {0}: depth is measured along the axis from the point
+    depth_ref: tuple | None = None
+    #: the insertion force decision of the drilling strategy (or the alignment PD)
+    decision: Decision = field(default_factory=lambda: Decision(0.0, 0.0))
+    decided: int = -1                    # the tick it was taken in
+    align_pd: FeedrateController | None = None
+    script_target: np.ndarray | None = None   # joint target of a scripted arm motion (deg)
+    pedal: bool = False
+    reversals: int = 0
+    patient_episodes: int = 0
+
+
+def feed_force_n(mode, ctx: Context, plan) -> float:
+    """The desired insertion force fz of f_d (4.4) that ``mode.feed`` asks for (N)."""
+    if mode.feed == "strategy":
+        return ctx.decision.fz_n
+    if mode.feed == "align":
+        return ctx.decision.fz_n if ctx.align_pd is not None else plan.align_fz_n
+    if mode.feed == "retract":
+        return -plan.retract_fz_n
+    return 0.0
+
+
+def set_depth_reference(ctx: Context, rt, est) -> None:
+    """Depth 0 is the canal orifice, ``orifice_gap_mm`` ahead of the tip along the tool axis
+    when the file first goes in (kept until the procedure goes back to idle or dragging)."""
+    if ctx.depth_ref is None and est is not None:
+        gap = rt.cfg.plan.orifice_gap_mm
+        a = est.axis_0
+        ctx.depth_ref = (tuple(est.tip_0[i] + gap * a[i] for i in range(3)), a)
+        est.depth_mm = -gap
+
+
+class Behaviour:
+    """A state with nothing to set up or detect. Subclasses override :meth:`enter`,
+    :meth:`guard` (a limit whose event ends the tick's detection) and :meth:`events`."""
+
+    def enter(self, ctx: Context, rt, est, prev: str | None) -> None:
+        """The state was just entered (``prev`` the state before it)."""
+
+    def guard(self, ctx: Context, rt, est) -> Event | None:
+        return None
+
+    def events(self, ctx: Context, rt, est) -> list[Event]:
+        return []
+
+    def overload(self, ctx: Context, rt, est) -> list[Event]:
+        """A turning file above the torque limit outside feeding is a fault."""
+        th = rt.cfg.thresholds
+        tau = est.file_torque_mnm
+        if tau > th.torque_limit_mnm and rt.mode.file in ("forward", "align") \
+                and rt.file_cmd != ("stop",):
+            return [("fault", (f"file torque {tau:.1f} mNm > limit "
+                               f"{th.torque_limit_mnm:.1f} mNm in {rt.state}"))]
+        return []
+
+    def detect(self, ctx: Context, rt, est) -> list[Event]:
+        """Every tick in this state: the events it sees in the estimate ``est``."""
+        g = self.guard(ctx, rt, est)
+        if g is not None:
+            return [g]
+        return [*self.events(ctx, rt, est), *self.overload(ctx, rt, est)]
+
+
+class Free(Behaviour):
+    """Idle and dragging: no depth reference (the next insertion sets a new one)."""
+
+    def enter(self, ctx, rt, est, prev):
+        ctx.depth_ref = None
+
+
+class SelfAligning(Behaviour):
+    """4.4: f_d = (0, 0, fz) at the tip; optionally the feedrate PD on the file torque
+    (Table 6.4 config C, no reversal); a depth beyond the working length is a fault."""
+
+    def enter(self, ctx, rt, est, prev):
+        plan = rt.cfg.plan
+        fr = plan.align_feedrate
+        ctx.align_pd = FeedrateController(fr, rt.ts) if fr is not None else None
+        ctx.decision = Decision(plan.align_fz_n, plan.align_fz_n)
+        set_depth_reference(ctx, rt, est)
+
+    def guard(self, ctx, rt, est):
+        wl, margin = rt.cfg.plan.working_length_mm, rt.cfg.thresholds.align_depth_margin_mm
+        if est.depth_mm is not None and est.depth_mm > wl + margin:
+            return ("fault", (f"depth_limit: depth {est.depth_mm:.2f} mm during alignment > "
+                              f"working length {wl} + {margin} mm"))
+        return None
+
+    def events(self, ctx, rt, est):
+        if ctx.align_pd is not None:
+            out = ctx.align_pd.step(est.file_torque_mnm)
+            ctx.decision = Decision(out.fz_n, out.fz_star_n)
+            ctx.decided = rt.ticks
+        return []
+
+
+class Drilling(Behaviour):
+    """Any drilling state: a patient movement (fig 5.6), the depth and the axial force limits
+    end drilling before anything else is looked at."""
+
+    def guard(self, ctx, rt, est):
+        th, wl = rt.cfg.thresholds, rt.cfg.plan.working_length_mm
+        if est.force_norm_n > th.patient_moved_n:
+            ctx.patient_episodes += 1
+            return ("patient_moved", f"||f_H|| = {est.force_norm_n:.2f} N > {th.patient_moved_n} N")
+        if est.depth_mm is not None and est.depth_mm > wl + th.depth_margin_mm:
+            return ("depth_limit", (f"depth {est.depth_mm:.2f} mm > working length {wl} + "
+                                    f"{th.depth_margin_mm} mm"))
+        if -est.wrench_h[2] > th.axial_force_limit_n:
+            return ("force_limit", (f"axial force {-est.wrench_h[2]:.2f} N > "
+                                    f"{th.axial_force_limit_n} N"))
+        return None
+
+
+class Feeding(Drilling):
+    """5.4: the drilling strategy decides the feed every tick; a torque above the hard limit
+    asks for a reversal."""
+
+    def enter(self, ctx, rt, est, prev):
+        set_depth_reference(ctx, rt, est)
+        if prev == State.TREATING_DRILLING_REVERSING:
+            ctx.strategy.reversed()
+        ctx.strategy.start_pass(est.depth_mm if est and est.depth_mm is not None else 0.0)
+        ctx.decision = Decision(0.0, 0.0)
+
+    def events(self, ctx, rt, est):
+        th = rt.cfg.thresholds
+        tau = est.file_torque_mnm
+        depth = est.depth_mm if est.depth_mm is not None else 0.0
+        ctx.decision = dec = ctx.strategy.step(tau, depth)
+        ctx.decided = rt.ticks
+        ev: list[Event] = []
+        if tau > th.torque_limit_mnm and "reversal_needed" not in dec.events:
+            ev.append(("reversal_needed", (f"file torque {tau:.1f} mNm > limit "
+                                           f"{th.torque_limit_mnm:.1f} mNm")))
+        for e in dec.events:
+            ev.append((e, f"tau {tau:.1f} mNm, fz* {dec.fz_star_n:.3f} N, depth {depth:.2f} mm"))
+        return ev
+
+    def overload(self, ctx, rt, est):
+        return []                         # feeding reverses instead (events above)
+
+
+class Reversing(Drilling):
+    """5.2: the file turned back ``reversal_deg``; finished when it has and stands still, a
+    fault when it could not within the timeout (file bound)."""
+
+    def enter(self, ctx, rt, est, prev):
+        ctx.reversals += 1
+        self.start = (est.motor_pos_deg if est else 0.0, rt.ticks)
+
+    def events(self, ctx, rt, est):
+        hp = rt.cfg.handpiece
+        start_pos, start_tick = self.start
+        turned = start_pos - est.motor_pos_deg
+        if turned >= hp.reversal_deg - 1.0 and abs(est.motor_rpm) < 2.0:
+            return [("reversal_finished", f"turned back {turned:.1f} deg")]
+        if (rt.ticks - start_tick) * rt.ts > hp.reversal_timeout_s:
+            return [("fault", (f"reversal: turned {turned:.1f} of {hp.reversal_deg} deg "
+                               f"in {hp.reversal_timeout_s} s (file bound?)"))]
+        return []
+
+
+class PatientMoved(Behaviour):
+    """Fig 5.6: file stopped, fz = 0, the arm follows; released when the force stays below the
+    release threshold long enough; a force that persists while the arm follows is not a
+    patient (sensor drift or a collision): a fault."""
+
+    def enter(self, ctx, rt, est, prev):
+        self.release_ticks = 0
+        self.persist_ticks = 0
+
+    def events(self, ctx, rt, est):
+        th = rt.cfg.thresholds
+        if est.force_norm_n < th.patient_release_n:
+            self.release_ticks += 1
+            self.persist_ticks = 0
+            if self.release_ticks * rt.ts >= th.patient_release_s:
+                return [("patient_released", f"||f_H|| = {est.force_norm_n:.2f} N")]
+            return []
+        self.release_ticks = 0
+        self.persist_ticks += 1
+        if self.persist_ticks * rt.ts > th.patient_persist_s:
+            return [("fault", (f"force {est.force_norm_n:.2f} N persists "
+                               f"{th.patient_persist_s} s while the arm follows "
+                               f"(limit {th.patient_release_n} N): sensor drift or "
+                               "a collision, not a patient movement"))]
+        return []
+
+
+class Retracting(Behaviour):
+    """Withdrawing the file (negative fz) until the retract depth; a file bound on the way out
+    (screw-in, taper lock) stops turning and is withdrawn straight, rather than left stopped
+    in the canal."""
+
+    def events(self, ctx, rt, est):
+        if est.depth_mm is not None and est.depth_mm <= rt.cfg.plan.retract_to_mm:
+            return [("retracted", f"depth {est.depth_mm:.2f} mm")]
+        return []
+
+    def overload(self, ctx, rt, est):
+        th = rt.cfg.thresholds
+        tau = est.file_torque_mnm
+        if [e for e, _ in super().overload(ctx, rt, est)]:
+            return [("file_stopped", (f"file torque {tau:.1f} mNm > limit "
+                                      f"{th.torque_limit_mnm:.1f} mNm while retracting: "
+                                      "withdrawn without turning"))]
+        return []
+
+
+class CalibratingTcp(Behaviour):
+    """Eq 3.21-3.23: each pedal press records the flange pose (the operator holds the file tip
+    on one fixed point); enough poses give the new tool tip."""
+
+    def enter(self, ctx, rt, est, prev):
+        self.routine = TcpRoutine(rt.cfg.tcp_points)
+        self.pedal_prev = ctx.pedal
+
+    def events(self, ctx, rt, est):
+        pressed = ctx.pedal and not self.pedal_prev
+        self.pedal_prev = ctx.pedal
+        if not pressed:
+            return []
+        tcp = self.routine
+        cols, o6 = rt.chain[1][-1]
+        result = tcp.add(np.array(cols).T, np.array(o6))
+        if result is None:
+            return [("tcp_point", f"pose {len(tcp.rotations)} recorded")]
+        if isinstance(result, str):
+            if len(tcp.rotations) >= tcp.max_points:
+                return [("fault", f"TCP calibration: {result}")]
+            return [("tcp_point", f"pose {len(tcp.rotations)}: {result}")]
+        rt.set_tool_tip(result.p_6_H_mm)
+        return [("calibration_done", (f"TCP {np.round(result.p_6_H_mm, 3).tolist()} mm, "
+                                      f"residual max {result.residual_max_mm:.3f} mm"))]
+
+
+class CalibratingLoad(Behaviour):
+    """Eq 4.18-4.24: the arm is scripted through the calibration poses; the identified load
+    becomes the gravity model."""
+
+    def enter(self, ctx, rt, est, prev):
+        self.routine = None
+        ctx.script_target = None
+        if est is not None:
+            self.routine = LoadCalibration(est.q_deg, rt.ts, limits_deg=rt.kin.joint_limits_deg)
+
+    def events(self, ctx, rt, est):
+        calib = self.routine
+        if calib is None:
+            return []
+        ctx.script_target = calib.step(est.q_deg, est.wrench_s, rt.r_0_6)
+        if calib.result is not None:
+            rt.set_gravity(calib.result.model)
+            return [("calibration_done", f"load: {calib.result.mass_kg * 1e3:.1f} g")]
+        if calib.error is not None:
+            return [("fault", f"load calibration: {calib.error}")]
+        return []
+
+
+#: The behaviour of each leaf state (a class: every procedure gets its own instances).
+BEHAVIOURS: dict[State, type[Behaviour]] = {
+    State.IDLE: Free,
+    State.CALIBRATING_TCP: CalibratingTcp,
+    State.CALIBRATING_LOAD: CalibratingLoad,
+    State.DRAGGING: Free,
+    State.SELF_ALIGNING: SelfAligning,
+    State.TREATING_DRILLING_FEEDING: Feeding,
+    State.TREATING_DRILLING_REVERSING: Reversing,
+    State.TREATING_PATIENT_MOVED: PatientMoved,
+    State.TREATING_PAUSED: Behaviour,
+    State.TREATING_RETRACTING: Retracting,
+    State.DONE: Behaviour,
+    State.FAULT: Behaviour,
+}
+
+
+def make_behaviours() -> dict[str, Behaviour]:
+    """One behaviour instance per state, for one procedure."""
+    return {state: cls() for state, cls in BEHAVIOURS.items()}
