@@ -39,10 +39,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from benchutil import fmt, quantiles
 
+from dentibot.app.hardware import hardware_runtime
 from dentibot.io.devices import loopback_config, open_devices
 from dentibot.runtime.clock import Clock, DeadlineStats, RealTimeClock
 from dentibot.runtime.config import RuntimeConfig, Thresholds
-from dentibot.runtime.control_task import Devices, Runtime
 from dentibot.app.simulated import true_gravity_model
 from dentibot.sim.world import World, WorldConfig
 
@@ -169,9 +169,8 @@ async def control_loop(d, world: World, clock: Clock, seconds: float) -> dict:
         late.append(row["lateness_us"])
         comp.append(row["compute_us"])
 
-    rt = Runtime(Devices(d.arm, d.ft, d.motor, d.aux), RuntimeConfig(
-        period_s=clock.period_s, thresholds=LOOSE), clock, gravity=true_gravity_model(world),
-        sink=sink)
+    rt = hardware_runtime(d, RuntimeConfig(period_s=clock.period_s, thresholds=LOOSE),
+                          clock=clock, gravity=true_gravity_model(world), sink=sink)
     rt.stats = DeadlineStats(clock.period_s)
     c0 = _counters(d)
     cpu0 = time.process_time()

@@ -165,3 +165,14 @@ def test_the_checker_sees_absolute_lazy_and_relative_imports(tmp_path, monkeypat
     probe.write_text(source)
     monkeypatch.setattr(sys.modules[__name__], "PACKAGE", fake)
     assert imports_of(probe) == expected
+
+
+def test_only_the_app_layer_constructs_the_runtime():
+    builders = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) \
+                    and node.func.id == "Runtime":
+                builders.append(module_name(path))
+    assert builders, "no construction of the runtime found: the check reads nothing"
+    assert {layer(m) for m in builders} == {"app"}, builders

@@ -19,14 +19,14 @@ from pathlib import Path
 import numpy as np
 import structlog
 
+from dentibot.app.hardware import hardware_runtime
+from dentibot.app.simulated import SimHarness
+from dentibot.app.steps import Aborted, StepExecutor
 from dentibot.errors import ConfigError
 from dentibot.io.devices import DevicesConfig, open_devices
 from dentibot.protocol.schema import Protocol
-from dentibot.app.steps import Aborted, StepExecutor
-from dentibot.runtime.clock import RealTimeClock
 from dentibot.runtime.config import RuntimeConfig, Thresholds, ToolGeometry, TreatmentPlan
-from dentibot.runtime.control_task import Devices, Runtime
-from dentibot.app.simulated import SimHarness
+from dentibot.runtime.control_task import Runtime
 from dentibot.sim.canal import CanalParams, material_params
 from dentibot.sim.ftsensor import FTSensorParams
 from dentibot.sim.nitifile import NiTiFile
@@ -190,8 +190,7 @@ class ProtocolRunner:
             return await self._run()
         p = self.p
         async with open_devices(self.devices) as d:
-            self.rt = Runtime(Devices(d.arm, d.ft, d.motor, d.aux), runtime_config(p),
-                              RealTimeClock(1.0 / p.control.rate_hz), sink=self._row)
+            self.rt = hardware_runtime(d, runtime_config(p), sink=self._row)
             self.rt.event_sink = self._event
             return await self._run()
 

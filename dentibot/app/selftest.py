@@ -126,11 +126,10 @@ async def run_wire_fault(name: str, seed: int = 1, settle_s: float = 0.3,
                          watch_s: float = 2.0) -> FaultResult:
     """The same check over the wire: ``dentibot sim serve``'s simulators in this process, the
     four real drivers, the runtime on a real-time clock (idle: all streams read every tick)."""
-    from dentibot.io.devices import open_devices
-    from dentibot.runtime.clock import RealTimeClock
-    from dentibot.runtime.config import Thresholds
-    from dentibot.runtime.control_task import Runtime
+    from dentibot.app.hardware import hardware_runtime
     from dentibot.app.simulated import tool_geometry_of, true_gravity_model
+    from dentibot.io.devices import open_devices
+    from dentibot.runtime.config import Thresholds
     from dentibot.sim.serve import ServePorts, VirtualDentiBot
     from dentibot.sim.world import World
 
@@ -142,10 +141,8 @@ async def run_wire_fault(name: str, seed: int = 1, settle_s: float = 0.3,
     th = Thresholds(stale_periods={"arm": 20, "ft": 20, "motor": 20, "aux": 100})
     rows: list[dict] = []
     async with VirtualDentiBot(world, ports) as bot, open_devices(bot.devices_config()) as d:
-        rt = Runtime(Devices(d.arm, d.ft, d.motor, d.aux),
-                     RuntimeConfig(tool=tool_geometry_of(world), thresholds=th),
-                     RealTimeClock(0.002), gravity=true_gravity_model(world),
-                     sink=rows.append)
+        rt = hardware_runtime(d, RuntimeConfig(tool=tool_geometry_of(world), thresholds=th),
+                              gravity=true_gravity_model(world), sink=rows.append)
         await rt.run(max_ticks=round(settle_s / rt.ts))
         if rt.state == "fault":
             raise RuntimeError("wire selftest: the runtime faulted before the injection: "

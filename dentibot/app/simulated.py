@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+from collections.abc import Callable
 
 import numpy as np
 
 from dentibot.control.kinematics import euler_xyz_deg
 from dentibot.control.wrench import GravityModel
-from dentibot.runtime.clock import LockStepClock
+from dentibot.runtime.clock import Clock, LockStepClock
 from dentibot.runtime.config import RuntimeConfig, ToolGeometry, TreatmentPlan
 from dentibot.runtime.control_task import Devices, Runtime
 from dentibot.sim.devices import make_devices
@@ -51,13 +52,15 @@ def true_gravity_model(world: World) -> GravityModel:
 class SimHarness:
     """World + devices + lock-step clock + runtime, ready to run.
 
+    ``clock(step, period_s)`` makes the clock (default: lock step, one world step per tick).
     ``config`` defaults to one that agrees with the world: its tool geometry, and a treatment
     plan with the world's orifice gap and working length (depth 0 is the canal orifice).
     """
 
     def __init__(self, world: World | WorldConfig | None = None,
                  config: RuntimeConfig | None = None, *, calibrated: bool = True,
-                 sink=None, step_name: str = "") -> None:
+                 sink=None, step_name: str = "",
+                 clock: Callable[[Callable[[], None], float], Clock] | None = None) -> None:
         if not isinstance(world, World):
             world = World(world)
         self.world = w = world
@@ -71,7 +74,7 @@ class SimHarness:
         self.config = cfg
         arm, ft, motor, aux = make_devices(w)
         self.devices = Devices(arm, ft, motor, aux)
-        self.clock = LockStepClock(w.step, cfg.period_s)
+        self.clock = (clock or LockStepClock)(w.step, cfg.period_s)
         self.runtime = Runtime(self.devices, cfg, self.clock,
                                gravity=true_gravity_model(w) if calibrated else None,
                                sink=sink, truth=self.truth, step_name=step_name)

@@ -29,14 +29,15 @@ from pathlib import Path
 
 import structlog
 
+from dentibot.app.hardware import hardware_runtime
+from dentibot.app.runner import runtime_config, world_config
+from dentibot.app.simulated import SimHarness
+from dentibot.app.steps import StepExecutor, align_plan
 from dentibot.errors import DentibotError
 from dentibot.io.devices import DevicesConfig, load_devices_config, open_devices
-from dentibot.app.runner import runtime_config, world_config
 from dentibot.protocol.schema import Protocol
-from dentibot.app.steps import StepExecutor, align_plan
-from dentibot.runtime.clock import DeadlineStats, LockStepClock, RealTimeClock
-from dentibot.runtime.control_task import Devices, Runtime
-from dentibot.app.simulated import SimHarness
+from dentibot.runtime.clock import LockStepClock, RealTimeClock
+from dentibot.runtime.control_task import Runtime
 from dentibot.session.clock import (
     GateClosed,
     GatedClock,
@@ -552,15 +553,15 @@ class SessionController:
             self._stack = None
         gate = self.gate = TickGate()
         if self.devices_cfg is None:
+            def gated(step, ts):
+                self.clock = {"realtime": lambda: PacedSimClock(step, ts),
+                              "lockstep": lambda: LockStepClock(step, ts),
+                              "stepped": lambda: SteppedClock(step, gate, ts)}[self.opt.clock]()
+                return GatedClock(self.clock, gate)
+
             h = SimHarness(world_config(p), runtime_config(p), calibrated=self.opt.calibrated,
-                           sink=self._row)
+                           sink=self._row, clock=gated)
             self.harness, self.world, rt = h, h.world, h.runtime
-            ts = rt.ts
-            inner = {"realtime": lambda: PacedSimClock(h.world.step, ts),
-                     "lockstep": lambda: LockStepClock(h.world.step, ts),
-                     "stepped": lambda: SteppedClock(h.world.step, gate, ts)}[self.opt.clock]()
-            rt.clock = h.clock = GatedClock(inner, gate)
-            rt.stats = DeadlineStats(ts, deadlines=inner.realtime)
         else:
             stack = contextlib.AsyncExitStack()
             try:
@@ -569,11 +570,9 @@ class SessionController:
                 await stack.aclose()
                 raise
             self._stack = stack
-            ts = 1.0 / p.control.rate_hz
-            inner = RealTimeClock(ts)
-            rt = Runtime(Devices(d.arm, d.ft, d.motor, d.aux), runtime_config(p),
-                         GatedClock(inner, gate), sink=self._row)
-        self.clock = inner
+            self.clock = RealTimeClock(1.0 / p.control.rate_hz)
+            rt = hardware_runtime(d, runtime_config(p), clock=GatedClock(self.clock, gate),
+                                  sink=self._row)
         rt.event_sink = self._event
         self.runtime = rt
         self.control_error = None
