@@ -52,5 +52,8 @@ def test_the_layout_table_names_every_package_of_the_tree_and_no_other():
     listed = set(re.findall(r"^\| `dentibot/(\w+)/` \|", layout, flags=re.MULTILINE))
     packages = {p.parent.name for p in (ROOT / "dentibot").glob("*/__init__.py")}
     assert listed == packages, (sorted(listed - packages), sorted(packages - listed))
-    for module in re.findall(r"`(\w+)` \(", layout):
-        assert list((ROOT / "dentibot").glob(f"*/{module}.py")), module
+    for package, row in re.findall(r"^\| `dentibot/(\w+)/` \|(.*)$", layout, flags=re.MULTILINE):
+        for module in re.findall(r"`(\w+)` \(", row):
+            assert (ROOT / "dentibot" / package / f"{module}.py").is_file(), (package, module)
+    for module in re.findall(r"^\| `dentibot/(\w+)\.py` \|", layout, flags=re.MULTILINE):
+        assert (ROOT / "dentibot" / f"{module}.py").is_file(), module
