@@ -74,6 +74,15 @@ def _worst(values) -> float | None:
     return max(vals) if vals else None
 
 
+def _run_or_abort(fn, specs, workers: int, done):
+    """The runs in ``workers`` processes; None after Ctrl-C (the command exits 130)."""
+    try:
+        return run_all(fn, specs, workers=workers, done=done)
+    except KeyboardInterrupt:
+        print("aborted", file=sys.stderr)
+        return None
+
+
 def _seeds(args) -> list[int]:
     return list(range(args.seed, args.seed + args.seeds))
 
@@ -171,10 +180,8 @@ def cmd_alignment(args: argparse.Namespace) -> int:
                            f"{run.max_rel_mm['x']:.2f} mm, peak out {run.max_out_mm:.2f} mm "
                            f"({run.wall_s:.0f} s)")
 
-    try:
-        results = run_all(al.run_alignment, specs, workers=args.workers, done=done)
-    except KeyboardInterrupt:
-        print("aborted", file=sys.stderr)
+    results = _run_or_abort(al.run_alignment, specs, args.workers, done)
+    if results is None:
         return 130
     wall = time.perf_counter() - started
     runs: dict[str, list[al.AlignmentRun]] = {}
@@ -355,10 +362,8 @@ def cmd_preclinical(args: argparse.Namespace) -> int:
                            f"{'fracture' if run.fracture else 'no fracture'}, peak "
                            f"{run.peak_torque_mnm:.1f} mNm ({run.wall_s:.0f} s)")
 
-    try:
-        runs = run_all(pc.run_phantom, specs, workers=args.workers, done=done)
-    except KeyboardInterrupt:
-        print("aborted", file=sys.stderr)
+    runs = _run_or_abort(pc.run_phantom, specs, args.workers, done)
+    if runs is None:
         return 130
     wall = time.perf_counter() - started
     by = {st: [r for r in runs if r.spec.strategy == st] for st in strategies}
