@@ -144,20 +144,27 @@ class RealTimeClock(Clock):
 
 
 class LockStepClock(Clock):
-    """Simulated time: ``step()`` advances the world by one period per tick."""
+    """Simulated time: ``step()`` advances the world by one period per tick.
 
-    realtime = False
+    ``paced``: each tick then also waits for its wall-clock deadline (a
+    :class:`RealTimeClock`'s waiting): the built-in simulator at the speed of the real world,
+    e.g. for an interactive session; ticks then have deadlines (``realtime``).
+    """
 
     def __init__(self, step: Callable[[], None], period_s: float = 0.002,
-                 yield_every: int = 10) -> None:
+                 yield_every: int = 10, *, paced: bool = False) -> None:
         self.period_s = _check_period(period_s)
         self._step = step
         self._yield_every = max(1, int(yield_every))
+        self._pace = RealTimeClock(period_s) if paced else None
+        self.realtime = paced
         self.skipped = 0
         self.start()
 
     def start(self) -> None:
         self._k = 0
+        if self._pace is not None:
+            self._pace.start()
 
     def now(self) -> float:
         return self._k * self.period_s
@@ -165,6 +172,10 @@ class LockStepClock(Clock):
     async def wait_next(self) -> float:
         self._step()
         self._k += 1
+        if self._pace is not None:
+            lateness = await self._pace.wait_next()
+            self.skipped = self._pace.skipped
+            return lateness
         if self._k % self._yield_every == 0:
             await asyncio.sleep(0)   # let the other tasks (UI, operator commands) run
         return 0.0

@@ -11,12 +11,9 @@ step, a safe stop) after each tick.
 
 Clocks (every one wrapped in :class:`GatedClock`):
 
-- :class:`PacedSimClock`: the built-in simulator in real time: the world steps once per tick
-  (lock-step causality, as in :class:`~dentibot.runtime.clock.LockStepClock`) and the tick
-  then waits for its wall-clock deadline (:class:`~dentibot.runtime.clock.RealTimeClock`'s
-  waiting, inherited, not copied).
-- :class:`~dentibot.runtime.clock.LockStepClock` (reused as it is): as fast as the machine
-  allows.
+- :class:`~dentibot.runtime.clock.LockStepClock`: as fast as the machine allows, or
+  ``paced``: the built-in simulator in real time (one world step per tick, then the tick's
+  wall-clock deadline).
 - :class:`SteppedClock`: lock-step time that advances only by the ticks granted to it
   (``grant``), serving the gate while it waits: tests drive the terminal UI and the simulated
   time separately, deterministically.
@@ -32,7 +29,7 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 from dentibot.errors import DentibotError
-from dentibot.runtime.clock import Clock, RealTimeClock
+from dentibot.runtime.clock import Clock
 
 
 class GateClosed(DentibotError):
@@ -179,18 +176,6 @@ class GatedClock(Clock):
     async def wait_next(self) -> float:
         await self.gate.between()
         return await self.inner.wait_next()
-
-
-class PacedSimClock(RealTimeClock):
-    """The built-in simulator in real time: one world step per tick, then the deadline."""
-
-    def __init__(self, step: Callable[[], None], period_s: float = 0.002, **kw) -> None:
-        super().__init__(period_s, **kw)
-        self._step = step
-
-    async def wait_next(self) -> float:
-        self._step()
-        return await super().wait_next()
 
 
 class SteppedClock(Clock):

@@ -41,7 +41,6 @@ from dentibot.runtime.control_task import Runtime
 from dentibot.session.clock import (
     GateClosed,
     GatedClock,
-    PacedSimClock,
     SteppedClock,
     TickGate,
 )
@@ -554,7 +553,7 @@ class SessionController:
         gate = self.gate = TickGate()
         if self.devices_cfg is None:
             def gated(step, ts):
-                self.clock = {"realtime": lambda: PacedSimClock(step, ts),
+                self.clock = {"realtime": lambda: LockStepClock(step, ts, paced=True),
                               "lockstep": lambda: LockStepClock(step, ts),
                               "stepped": lambda: SteppedClock(step, gate, ts)}[self.opt.clock]()
                 return GatedClock(self.clock, gate)

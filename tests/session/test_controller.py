@@ -10,7 +10,6 @@ import pytest
 
 from dentibot.control.admittance import DRAGGING
 from dentibot.protocol.loader import parse_protocol
-from dentibot.runtime.clock import RealTimeClock
 from dentibot.session.clock import GateClosed, SteppedClock, TickGate
 from dentibot.session.controller import SessionController, SessionOptions
 from dentibot.telemetry.reader import read_recording
@@ -65,7 +64,7 @@ async def test_the_session_clock_for_the_simulator_in_real_time_is_a_realtime_cl
     c = SessionController(SessionOptions(clock="realtime", calibrated=True, record_dir=tmp_path))
     assert (await say(c, "connect")).kind == "ok"
     try:
-        assert isinstance(c.clock, RealTimeClock) and c.runtime.clock.realtime
+        assert c.clock.realtime and c.runtime.clock.realtime      # paced: real-time deadlines
         assert c.runtime.stats.deadlines                  # lateness and overruns counted
         w0 = c.world.steps
         for _ in range(500):
