@@ -34,7 +34,7 @@ import pytest
 from dentibot.app.simulated import SimHarness, World, WorldConfig
 from dentibot.runtime.config import RuntimeConfig
 
-__all__ = ["SimProcedure", "WorldConfig", "dentibot_sim", "dentibot_wire"]
+__all__ = ["SimProcedure", "WorldConfig", "dentibot_sim", "dentibot_wire", "simulated_procedure"]
 
 
 @dataclass
@@ -66,8 +66,11 @@ class SimProcedure:
         return bool(until(rt))
 
 
-def _build(world: World | WorldConfig | None, config: RuntimeConfig | None,
-           calibrated: bool) -> SimProcedure:
+def simulated_procedure(world: World | WorldConfig | None = None,
+                        config: RuntimeConfig | None = None, *,
+                        calibrated: bool = True) -> SimProcedure:
+    """A simulated procedure in lock-step time (what ``dentibot_sim`` builds), for helpers
+    outside a fixture."""
     proc = SimProcedure(harness=None)  # type: ignore[arg-type]
     proc.harness = SimHarness(world, config, calibrated=calibrated, sink=proc.rows.append)
     return proc
@@ -77,11 +80,7 @@ def _build(world: World | WorldConfig | None, config: RuntimeConfig | None,
 def dentibot_sim():
     """Factory of simulated procedures in lock-step time (see the module docstring)."""
 
-    def make(world: World | WorldConfig | None = None, config: RuntimeConfig | None = None,
-             *, calibrated: bool = True) -> SimProcedure:
-        return _build(world, config, calibrated)
-
-    return make
+    return simulated_procedure
 
 
 @pytest.fixture
