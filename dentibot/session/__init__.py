@@ -2,7 +2,6 @@
 
 - :mod:`~dentibot.session.commands`: the command language (parsing, parameters validated by
   the protocol schema's step models, help, completion);
-- :mod:`~dentibot.session.clock`: the gate between two control ticks and the session clocks;
 - :mod:`~dentibot.session.controller`: :class:`SessionController` (devices, the running
   control task, commands, refusals, safe stop, recording) without a screen;
 - :mod:`~dentibot.session.panel`: the live panel's text;

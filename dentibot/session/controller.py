@@ -1,11 +1,11 @@
 """The interactive session without its screen: devices, the running control task, commands.
 
 :class:`SessionController` owns one procedure: ``connect`` builds the runtime over the
-built-in simulator (:class:`~dentibot.app.simulated.SimHarness` with a session clock) or over
+built-in simulator (:class:`~dentibot.app.simulated.SimHarness` with a gated clock) or over
 the real drivers (:func:`~dentibot.io.devices.open_devices`, as ``dentibot run --devices``
 does), and starts the control task, which then ticks until ``quit``. Every operator command
 goes through the state machine (``Runtime.command``), executed between two ticks by the
-:class:`~dentibot.session.clock.TickGate`: no command bypasses the machine, the limits or the
+:class:`~dentibot.runtime.gate.TickGate`: no command bypasses the machine, the limits or the
 supervisor, and a refused command comes back with the machine's reason (which state, what it
 needs first).
 
@@ -38,7 +38,7 @@ from dentibot.io.devices import DevicesConfig, load_devices_config, open_devices
 from dentibot.protocol.schema import Protocol
 from dentibot.runtime.clock import LockStepClock, RealTimeClock
 from dentibot.runtime.control_task import Runtime
-from dentibot.session.clock import (
+from dentibot.runtime.gate import (
     GateClosed,
     GatedClock,
     SteppedClock,

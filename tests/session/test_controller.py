@@ -10,7 +10,7 @@ import pytest
 
 from dentibot.control.admittance import DRAGGING
 from dentibot.protocol.loader import parse_protocol
-from dentibot.session.clock import GateClosed, SteppedClock, TickGate
+from dentibot.runtime.gate import GateClosed, SteppedClock, TickGate
 from dentibot.session.controller import SessionController, SessionOptions
 from dentibot.telemetry.reader import read_recording
 from dentibot.telemetry.summary import summarize_file

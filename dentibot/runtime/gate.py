@@ -1,7 +1,7 @@
-"""Clocks of the interactive session, and the gate between two control ticks.
+"""The gate between two control ticks: work submitted to a running control loop.
 
-The session's control task runs all the time (from ``connect`` to ``quit``) in the same event
-loop as the terminal UI. Operator commands must not reach the state machine in the middle of a
+A control task that runs all the time (the interactive session's, from ``connect`` to
+``quit``, in the same event loop as the terminal UI) takes its commands through the gate. Operator commands must not reach the state machine in the middle of a
 tick: the machine (transitions' asyncio machine) yields inside ``fire`` and cancels a
 transition that is still running when another one starts. So every command goes through a
 :class:`TickGate`: it is queued and executed by the control task itself between two ticks
@@ -9,7 +9,7 @@ transition that is still running when another one starts. So every command goes 
 in a protocol run. The gate also wakes whoever waits for a condition on the runtime (a timed
 step, a safe stop) after each tick.
 
-Clocks (every one wrapped in :class:`GatedClock`):
+The loop serves the gate through its clock (any clock wrapped in :class:`GatedClock`):
 
 - :class:`~dentibot.runtime.clock.LockStepClock`: as fast as the machine allows, or
   ``paced``: the built-in simulator in real time (one world step per tick, then the tick's
