@@ -71,9 +71,8 @@ def simulated_procedure(world: World | WorldConfig | None = None,
                         calibrated: bool = True) -> SimProcedure:
     """A simulated procedure in lock-step time (what ``dentibot_sim`` builds), for helpers
     outside a fixture."""
-    proc = SimProcedure(harness=None)  # type: ignore[arg-type]
-    proc.harness = SimHarness(world, config, calibrated=calibrated, sink=proc.rows.append)
-    return proc
+    rows: list[dict] = []
+    return SimProcedure(SimHarness(world, config, calibrated=calibrated, sink=rows.append), rows)
 
 
 @pytest.fixture

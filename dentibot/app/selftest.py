@@ -127,20 +127,18 @@ async def run_wire_fault(name: str, seed: int = 1, settle_s: float = 0.3,
     """The same check over the wire: ``dentibot sim serve``'s simulators in this process, the
     four real drivers, the runtime on a real-time clock (idle: all streams read every tick)."""
     from dentibot.app.hardware import hardware_runtime
-    from dentibot.app.simulated import tool_geometry_of, true_gravity_model
+    from dentibot.app.simulated import serve_wire, tool_geometry_of, true_gravity_model
     from dentibot.io.devices import open_devices
     from dentibot.runtime.config import Thresholds
-    from dentibot.sim.serve import ServePorts, VirtualDentiBot
     from dentibot.sim.world import World
 
     if name not in WIRE_FAULTS:
         raise ValueError(f"unknown wire fault {name!r}; one of {', '.join(WIRE_FAULTS)}")
     world = World(WorldConfig(seed=seed))
-    ports = ServePorts(meca_port=0, netft_port=0, netft_http_port=0, modbus_port=0, can_port=0)
     # loopback on a shared machine: bounds of 20 periods (40 ms) rather than hardware's 5-10
     th = Thresholds(stale_periods={"arm": 20, "ft": 20, "motor": 20, "aux": 100})
     rows: list[dict] = []
-    async with VirtualDentiBot(world, ports) as bot, open_devices(bot.devices_config()) as d:
+    async with serve_wire(world) as bot, open_devices(bot.devices_config()) as d:
         rt = hardware_runtime(d, RuntimeConfig(tool=tool_geometry_of(world), thresholds=th),
                               gravity=true_gravity_model(world), sink=rows.append)
         await rt.run(max_ticks=round(settle_s / rt.ts))

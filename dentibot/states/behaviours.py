@@ -238,7 +238,7 @@ class Retracting(Behaviour):
     def overload(self, ctx, rt, est):
         th = rt.cfg.thresholds
         tau = est.file_torque_mnm
-        if [e for e, _ in super().overload(ctx, rt, est)]:
+        if super().overload(ctx, rt, est):
             return [("file_stopped", (f"file torque {tau:.1f} mNm > limit "
                                       f"{th.torque_limit_mnm:.1f} mNm while retracting: "
                                       "withdrawn without turning"))]
