@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/lockstep.py [--seconds 300] [--profile 20]
 
 The main job's set-up (``protocols/root-canal.yaml``: world, runtime configuration, alignment)
-on :class:`~dentibot.app.simulated.SimHarness`, then one drilling round driven as
+on a :class:`~dentibot.app.procedure.Procedure`, then one drilling round driven as
 ``dentibot run`` drives it (automated strategy, passes until the round's time is up) for
 ``--seconds`` of simulated time, three ways:
 
@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import cProfile
-import dataclasses
 import logging
 import pstats
 import sys
@@ -37,11 +37,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from benchutil import fmt
 
-from dentibot.protocol.loader import load_protocol
+from dentibot.app.procedure import Procedure
 from dentibot.app.runner import runtime_config, world_config
-from dentibot.app.steps import align_plan, apply_drill
-from dentibot.app.simulated import SimHarness
-from dentibot.sim.world import World
+from dentibot.app.simulated import World
+from dentibot.app.steps import StepExecutor, drill_setup
+from dentibot.protocol.loader import load_protocol
 from dentibot.telemetry.recorder import McapRecorder
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -68,39 +68,37 @@ class _TimedStep:
         self.calls += 1
 
 
-def harness(protocol, sink=None) -> tuple[SimHarness, _TimedStep]:
+class _Sink:
+    """The procedure's row sink, switched on for the drilling round only."""
+
+    def __init__(self) -> None:
+        self.to = None
+
+    def __call__(self, row: dict) -> None:
+        if self.to is not None:
+            self.to(row)
+
+
+@contextlib.asynccontextmanager
+async def drilling(protocol, sink=None):
+    """The main job's procedure, aligned as the protocol gives it and drilling (passes until
+    stopped) with the protocol's drill spec, as ``dentibot run`` does it; ``sink`` gets the rows
+    from then on. Yields ``(procedure, timed world step)``."""
     world = World(world_config(protocol))
     timed = _TimedStep(world.step)
     world.step = timed               # the lock-step clock takes ``world.step`` at construction
-    return SimHarness(world, runtime_config(protocol), calibrated=True, sink=sink), timed
-
-
-async def prepare(h: SimHarness, protocol) -> None:
-    """Alignment as the protocol gives it, then the drill command with the protocol's spec."""
-    rt = h.runtime
+    switch = _Sink()
+    proc = Procedure.simulated(world, runtime_config(protocol), sink=switch)
     steps = {s.kind: s.spec for s in protocol.steps}
-    align = steps["align"]
-    rt.cfg = dataclasses.replace(rt.cfg, plan=align_plan(rt.cfg.plan, align))
-    await rt.command("align")
-    await rt.run(max_ticks=round(align.duration_s / rt.ts))
-    apply_drill(rt, steps["drill"])
-    rt.treatment.passes_left = 10**6          # keep cleaning until the round's time is up
-    refusal = await rt.command("drill")
-    if refusal is not None:
-        raise RuntimeError(f"drill refused: {refusal.reason}")
-
-
-def _round(h: SimHarness, seconds: float) -> float:
-    """Run the drilling round; returns its wall time (s)."""
-    rt = h.runtime
-
-    async def go() -> float:
-        t0 = time.perf_counter()
-        await rt.run(until=lambda r: r.state in ("done", "fault"),
-                     max_ticks=round(seconds / rt.ts))
-        return time.perf_counter() - t0
-
-    return asyncio.run(go())
+    async with proc:
+        ex = StepExecutor(proc)
+        await ex.align(steps["align"])
+        await proc.call(lambda: drill_setup(proc.runtime, steps["drill"]))
+        await ex.start_drilling(passes=10**6)
+        if proc.runtime.state == "fault":
+            raise RuntimeError("drill refused: " + "; ".join(proc.runtime.treatment.fault_causes))
+        switch.to = sink
+        yield proc, timed
 
 
 def run_variant(variant: str, seconds: float, protocol=None, out_dir: Path | None = None,
@@ -119,21 +117,24 @@ def run_variant(variant: str, seconds: float, protocol=None, out_dir: Path | Non
         sink = rec.record
     elif variant != "none":
         raise ValueError(f"variant must be one of {VARIANTS}")
-    h, timed = harness(protocol)
-    rt = h.runtime
-    asyncio.run(prepare(h, protocol))
-    rt.sink = sink                    # telemetry of the drilling round only
-    if rec is not None:
-        rt.event_sink = lambda tick, kind, detail: rec.event(kind, detail, t=tick * rt.ts,
-                                                             tick=tick)
-    ticks0, step_ns0 = rt.ticks, timed.ns
     prof = cProfile.Profile() if profile else None
-    if prof is not None:
-        prof.enable()
-    wall_run = _round(h, seconds)
-    if prof is not None:
-        prof.disable()
-    ticks = rt.ticks - ticks0
+
+    async def go() -> dict:
+        async with drilling(protocol, sink) as (proc, timed):
+            rt = proc.runtime
+            ticks0, step_ns0 = rt.ticks, timed.ns
+            if prof is not None:
+                prof.enable()
+            t0 = time.perf_counter()
+            await proc.run_for(seconds, until=lambda r: r.state in ("done", "fault"))
+            wall_run = time.perf_counter() - t0
+            if prof is not None:
+                prof.disable()
+            return {"rt": rt, "world": proc.world, "ticks": rt.ticks - ticks0,
+                    "world_ns": timed.ns - step_ns0, "wall_run": wall_run}
+
+    r = asyncio.run(go())
+    rt, world, ticks, wall_run = r["rt"], r["world"], r["ticks"], r["wall_run"]
     t_close = time.perf_counter()
     out = {}
     if rec is not None:
@@ -147,9 +148,9 @@ def run_variant(variant: str, seconds: float, protocol=None, out_dir: Path | Non
     sim_s = ticks * rt.ts
     out.update(variant=variant, sim_seconds=sim_s, ticks=ticks, wall_s=wall,
                close_s=wall - wall_run, speed_factor=sim_s / wall, us_per_tick=1e6 * wall / ticks,
-               world_us_per_tick=(timed.ns - step_ns0) / 1e3 / ticks,
+               world_us_per_tick=r["world_ns"] / 1e3 / ticks,
                state=rt.state, reversals=rt.ctx.reversals,
-               completeness=h.world.completeness(), fractured=h.world.fractured is not None)
+               completeness=world.completeness(), fractured=world.fractured is not None)
     if prof is not None:
         out["profile"] = _profile_table(prof, ticks)
     return out

@@ -39,9 +39,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from benchutil import fmt, quantiles
 
-from dentibot.app.hardware import hardware_runtime
+from dentibot.app.procedure import Procedure
 from dentibot.io.devices import loopback_config, open_devices
-from dentibot.runtime.clock import Clock, DeadlineStats, RealTimeClock
+from dentibot.runtime.clock import Clock, RealTimeClock
 from dentibot.runtime.config import RuntimeConfig, Thresholds
 from dentibot.app.simulated import true_gravity_model
 from dentibot.sim.world import World, WorldConfig
@@ -169,13 +169,14 @@ async def control_loop(d, world: World, clock: Clock, seconds: float) -> dict:
         late.append(row["lateness_us"])
         comp.append(row["compute_us"])
 
-    rt = hardware_runtime(d, RuntimeConfig(period_s=clock.period_s, thresholds=LOOSE),
+    proc = Procedure.over(d, RuntimeConfig(period_s=clock.period_s, thresholds=LOOSE),
                           clock=clock, gravity=true_gravity_model(world), sink=sink)
-    rt.stats = DeadlineStats(clock.period_s)
+    rt = proc.runtime
     c0 = _counters(d)
     cpu0 = time.process_time()
     t0 = time.perf_counter()
-    await rt.run(max_ticks=round(seconds / clock.period_s))
+    async with proc:
+        await proc.run_for(seconds)
     wall = time.perf_counter() - t0
     s = rt.stats.as_dict()
     s["effective_rate_hz"] = s["ticks"] / wall

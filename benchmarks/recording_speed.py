@@ -42,13 +42,10 @@ def real_rows(n: int) -> list[dict]:
     """``n`` consecutive telemetry rows of the main job's drilling round (lock-step)."""
     protocol = load_protocol(lockstep.PROTOCOL)
     rows: list[dict] = []
-    h, _ = lockstep.harness(protocol, sink=rows.append)
-    rt = h.runtime
-    asyncio.run(lockstep.prepare(h, protocol))
-    rows.clear()                                   # keep only the drilling ticks
 
     async def go() -> None:
-        await rt.run(max_ticks=n)
+        async with lockstep.drilling(protocol, sink=rows.append) as (proc, _):
+            await proc.run_for(ticks=n)
 
     asyncio.run(go())
     return rows[:n]

@@ -4,15 +4,17 @@ Installed with DentiBot (entry point ``pytest11``), so in any project that has D
 installed, tests can ask for:
 
 - ``dentibot_sim``: a factory ``dentibot_sim(world=None, config=None, *, calibrated=True)``
-  that builds the built-in simulator under a runtime in lock-step time
-  (:class:`~dentibot.app.simulated.SimHarness`). Every telemetry row goes to the returned
-  :class:`SimProcedure`'s ``rows``. Without ``config`` the runtime's plan agrees with the
-  world (orifice gap, working length, tool geometry), so depth 0 is the canal orifice::
+  that builds the built-in simulator under a runtime in lock-step time: a
+  :class:`~dentibot.app.procedure.Procedure` driven by the test (time passes only while the
+  test waits: ``run_for``), with every telemetry row in its ``rows``. Without ``config`` the
+  runtime's plan agrees with the world (orifice gap, working length, tool geometry), so depth 0
+  is the canal orifice. Commands go through ``command`` (between two ticks, as every
+  operator's); the procedures are stopped at the end of the test::
 
       async def test_drills_to_working_length(dentibot_sim):
           proc = dentibot_sim(WorldConfig(seed=3))
-          assert await proc.runtime.command("drill") is None
-          await proc.run_until(lambda rt: rt.state in ("done", "fault"), seconds=120)
+          assert await proc.command("drill") is None
+          await proc.run_for(120.0, until=lambda rt: rt.state in ("done", "fault"))
           assert proc.runtime.state == "done"
 
 - ``dentibot_wire``: the four wire simulators (Meca500 TCP, Net F/T UDP, EPOS4 over
@@ -26,60 +28,36 @@ Worlds are :class:`WorldConfig` (re-exported here); runtime configurations are
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass, field
-
 import pytest
 
-from dentibot.app.simulated import SimHarness, World, WorldConfig
+from dentibot.app.procedure import Procedure
+from dentibot.app.simulated import World, WorldConfig
 from dentibot.runtime.config import RuntimeConfig
 
-__all__ = ["SimProcedure", "WorldConfig", "dentibot_sim", "dentibot_wire", "simulated_procedure"]
-
-
-@dataclass
-class SimProcedure:
-    """A simulated procedure ready to run: ``harness`` (world, devices, clock, runtime) and the
-    telemetry ``rows`` it produced so far."""
-
-    harness: SimHarness
-    rows: list[dict] = field(default_factory=list)
-
-    @property
-    def runtime(self):
-        return self.harness.runtime
-
-    @property
-    def world(self) -> World:
-        return self.harness.world
-
-    async def run_for(self, seconds: float) -> None:
-        """Run ``seconds`` of simulated time (lock step: as fast as the machine allows)."""
-        rt = self.runtime
-        await rt.run(max_ticks=max(1, round(seconds / rt.ts)))
-
-    async def run_until(self, until: Callable, seconds: float) -> bool:
-        """Run until ``until(runtime)`` holds, at most ``seconds`` of simulated time; returns
-        whether it held."""
-        rt = self.runtime
-        await rt.run(until=until, max_ticks=max(1, round(seconds / rt.ts)))
-        return bool(until(rt))
+__all__ = ["Procedure", "WorldConfig", "dentibot_sim", "dentibot_wire", "simulated_procedure"]
 
 
 def simulated_procedure(world: World | WorldConfig | None = None,
                         config: RuntimeConfig | None = None, *,
-                        calibrated: bool = True) -> SimProcedure:
-    """A simulated procedure in lock-step time (what ``dentibot_sim`` builds), for helpers
-    outside a fixture."""
-    rows: list[dict] = []
-    return SimProcedure(SimHarness(world, config, calibrated=calibrated, sink=rows.append), rows)
+                        calibrated: bool = True) -> Procedure:
+    """A simulated procedure in lock-step time, driven by its waits, keeping its rows (what
+    ``dentibot_sim`` builds), for helpers outside a fixture."""
+    return Procedure.simulated(world, config, calibrated=calibrated, keep_rows=True)
 
 
 @pytest.fixture
-def dentibot_sim():
+async def dentibot_sim():
     """Factory of simulated procedures in lock-step time (see the module docstring)."""
+    made: list[Procedure] = []
 
-    return simulated_procedure
+    def make(world=None, config=None, *, calibrated: bool = True) -> Procedure:
+        proc = simulated_procedure(world, config, calibrated=calibrated)
+        made.append(proc)
+        return proc
+
+    yield make
+    for proc in made:
+        await proc.stop()
 
 
 @pytest.fixture

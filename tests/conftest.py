@@ -69,4 +69,4 @@ def pytest_collection_modifyitems(items):
     for item in items:
         fn = getattr(item, "function", None)
         if fn is not None and inspect.iscoroutinefunction(fn):
-            item.fixturenames.append("_no_leaked_tasks")
+            item.fixturenames.insert(0, "_no_leaked_tasks")   # torn down last

@@ -176,3 +176,19 @@ def test_only_the_app_layer_constructs_the_runtime():
                 builders.append(module_name(path))
     assert builders, "no construction of the runtime found: the check reads nothing"
     assert {layer(m) for m in builders} == {"app"}, builders
+    # and within it, one place: the procedure (devices, clock, gate, one control loop)
+    assert set(builders) == {"dentibot.app.procedure"}, builders
+
+
+def test_two_clocks_and_a_short_control_task():
+    """Time is real time or lock step (paced and held are options of lock step), and the
+    control task is a short loop: read, tick, behaviour, send, record."""
+    clocks = set()
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ClassDef) and any(
+                    isinstance(b, ast.Name) and b.id == "Clock" for b in node.bases):
+                clocks.add(node.name)
+    assert clocks == {"RealTimeClock", "LockStepClock"}
+    lines = (PACKAGE / "runtime" / "control_task.py").read_text().count("\n")
+    assert lines < 300, lines

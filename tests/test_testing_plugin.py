@@ -33,8 +33,8 @@ async def test_default_procedure_measures_depth_from_the_canal_orifice(dentibot_
     assert plan.orifice_gap_mm == proc.world.config.orifice_gap_mm == 2.0
     assert plan.working_length_mm == 16.0
     rt = proc.runtime
-    assert await rt.command("drill") is None
-    assert await proc.run_until(lambda r: r.state in ("done", "fault"), seconds=200.0)
+    assert await proc.command("drill") is None
+    assert await proc.run_for(200.0, until=lambda r: r.state in ("done", "fault"))
     assert rt.state == "done", rt.treatment.fault_causes
     deepest = max(proc.rows, key=lambda r: r["true_depth_mm"])
     # the canal bottom lies 0.5 mm past the working length (CanalParams.apex_margin_mm)

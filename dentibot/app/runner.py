@@ -19,8 +19,7 @@ from pathlib import Path
 import numpy as np
 import structlog
 
-from dentibot.app.hardware import hardware_runtime
-from dentibot.app.simulated import SimHarness
+from dentibot.app.procedure import Procedure
 from dentibot.app.steps import Aborted, StepExecutor
 from dentibot.errors import ConfigError
 from dentibot.io.devices import DevicesConfig, open_devices
@@ -110,33 +109,36 @@ class RunResult:
 
 
 class ProtocolRunner:
-    """Build the simulated procedure of ``protocol`` and run its steps.
+    """Build the procedure of ``protocol`` (on the built-in simulator, or over ``devices``) and
+    run its steps.
 
     ``progress(figures)`` is called every ``progress_every`` ticks with the live key figures
-    (step, state, t, depth, working length, file torque and its limit, force).
+    (step, state, t, depth, working length, file torque and its limit, force). ``tap(row)``
+    sees every telemetry row; with ``live_summary=False`` the rows feed only the tap and the
+    recording, not the live summary (the summary then carries the status and its reason).
     """
 
     def __init__(self, protocol: Protocol, *, recording: str | Path | None = None,
                  progress: Callable[[dict], None] | None = None,
                  progress_every: int = 250, overwrite: bool = True,
-                 no_record: bool = False, devices: DevicesConfig | None = None) -> None:
+                 no_record: bool = False, devices: DevicesConfig | None = None,
+                 tap: Callable[[dict], None] | None = None,
+                 live_summary: bool = True) -> None:
         self.p = protocol
         self.progress = progress
         self.progress_every = progress_every
         self.path = None if no_record else recording_path(protocol, recording)
         self.summary: RunSummary | None = None
         self.acc = SummaryAccumulator(rate_hz=protocol.control.rate_hz)
+        self._tap = tap
+        self._live_summary = live_summary
         calibrate = any(s.kind == "calibrate_load" for s in protocol.steps)
         self.devices = devices
-        self.h: SimHarness | None = None
-        self.world = None
-        self.rt: Runtime | None = None
+        self.procedure: Procedure | None = None
         if devices is None:
-            self.h = SimHarness(world_config(protocol), runtime_config(protocol),
-                                calibrated=not calibrate, sink=self._row)
-            self.world = self.h.world
-            self.rt = self.h.runtime
-            self.rt.event_sink = self._event
+            self.procedure = Procedure.simulated(
+                world_config(protocol), runtime_config(protocol), calibrated=not calibrate,
+                sink=self._row, event_sink=self._event)
         elif not calibrate:
             raise ConfigError("steps", [s.kind for s in protocol.steps],
                               "a calibrate_load step (real devices need the load identified "
@@ -145,11 +147,23 @@ class ProtocolRunner:
         self._overwrite = overwrite
         self._abort_reason = ""
 
+    @property
+    def rt(self) -> Runtime | None:
+        return None if self.procedure is None else self.procedure.runtime
+
+    @property
+    def world(self):
+        """The simulated world (None over devices)."""
+        return None if self.procedure is None else self.procedure.world
+
     # ---------------------------------------------------------------- sinks
     def _row(self, row: dict) -> None:
-        self.acc.add(row)
+        if self._live_summary:
+            self.acc.add(row)
         if self.recorder is not None:
             self.recorder.record(row)
+        if self._tap is not None:
+            self._tap(row)
         if self.progress is not None and row["tick"] % self.progress_every == 0:
             self.progress({
                 "step": row["step"], "state": row["state"], "t": row["t"],
@@ -168,10 +182,9 @@ class ProtocolRunner:
 
     # ---------------------------------------------------------------- run
     def abort(self, reason: str = "stopped by the operator (Ctrl-C)") -> None:
-        """Stop the procedure safely after the current tick (signal handlers, UIs)."""
+        """Stop the procedure safely after the current tick (signal handlers, UIs): the
+        running step ends, the file is withdrawn, the recording and summary are written."""
         self._abort_reason = reason
-        if self.rt is not None:
-            self.rt.request_stop()
 
     async def run(self, handle_sigint: bool = False) -> RunResult:
         """Run the steps. With ``handle_sigint``, Ctrl-C calls :meth:`abort` (a safe stop
@@ -187,12 +200,13 @@ class ProtocolRunner:
 
     async def _run_devices(self) -> RunResult:
         if self.devices is None:
-            return await self._run()
-        p = self.p
+            async with self.procedure:
+                return await self._run()
         async with open_devices(self.devices) as d:
-            self.rt = hardware_runtime(d, runtime_config(p), sink=self._row)
-            self.rt.event_sink = self._event
-            return await self._run()
+            self.procedure = Procedure.over(d, runtime_config(self.p), sink=self._row,
+                                            event_sink=self._event)
+            async with self.procedure:
+                return await self._run()
 
     async def _run(self) -> RunResult:
         p = self.p
@@ -208,30 +222,30 @@ class ProtocolRunner:
                 "file_torque_limit_mnm": p.file.torsional_strength_mnm,
                 **({"tau_d_mnm": drills[0].tau_d_mnm} if drills else {})},
                 overwrite=self._overwrite, validate=False)   # rows are checked in tests
-        status, reason = "ok", ""
-        steps = StepExecutor(self.rt, self.world, aborted=lambda: bool(self._abort_reason))
+        proc, rt = self.procedure, self.procedure.runtime
+        steps = StepExecutor(proc, aborted=lambda: bool(self._abort_reason))
         try:
             for i, step in enumerate(p.steps):
-                self.rt.step_name = f"{i + 1}:{step.kind}"
+                name = f"{i + 1}:{step.kind}"
+                await proc.call(lambda name=name: setattr(rt, "step_name", name))
                 await steps.step(step.kind, step.spec)
-                if self.rt.state == "fault":
+                if rt.state == "fault":
                     break
+            if proc.error is not None:
+                raise RuntimeError(proc.error)
             status, reason = self._status()
         except Aborted:
-            await steps.safe_stop()
+            await proc.safe_stop()
             return RunResult(self._close("aborted", self._abort_reason), self.path)
         except asyncio.CancelledError:
-            await steps.safe_stop()
-            status, reason = "aborted", self._abort_reason or "cancelled by the operator"
-            self._close(status, reason)
+            await proc.safe_stop()
+            self._close("aborted", self._abort_reason or "cancelled by the operator")
             raise
         except BaseException as exc:
-            await steps.safe_stop()
-            status, reason = "fault", f"{type(exc).__name__}: {exc}"
-            self._close(status, reason)
+            await proc.safe_stop()
+            self._close("fault", f"{type(exc).__name__}: {exc}")
             raise
-        summary = self._close(status, reason)
-        return RunResult(summary, self.path)
+        return RunResult(self._close(status, reason), self.path)
 
     def _status(self) -> tuple[str, str]:
         w = self.world

@@ -15,9 +15,9 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from dentibot.app.procedure import Procedure
 from dentibot.runtime.config import RuntimeConfig, TreatmentPlan
-from dentibot.runtime.control_task import Devices
-from dentibot.app.simulated import SimHarness
+from dentibot.runtime.estimate import Devices
 from dentibot.sim.faults import FAULTS, FaultInjector
 from dentibot.sim.world import WorldConfig
 from dentibot.telemetry.reader import read_recording
@@ -69,30 +69,37 @@ async def run_fault(name: str, seed: int = 1, engage_s: float = 3.0, watch_s: fl
     recorder = McapRecorder(path, {"protocol": f"selftest-{name}", "seed": seed,
                                    "rate_hz": 500.0, "devices": {"all": "sim+faults"}},
                             overwrite=True, validate=False)
-    h = SimHarness(WorldConfig(seed=seed), RuntimeConfig(plan=TreatmentPlan(orifice_gap_mm=2.0)),
-                   sink=recorder.record)
-    rt, w = h.runtime, h.world
-    rt.event_sink = lambda tick, kind, detail: recorder.event(kind, detail, t=tick * rt.ts,
-                                                              tick=tick)
-    d = h.devices
-    fi = FaultInjector(w, d.arm, d.ft, d.motor, d.aux)
-    rt.dev = Devices(fi.arm, fi.ft, fi.motor, fi.aux)
-    try:
-        await rt.command("drill")
-        await rt.run(max_ticks=round(engage_s / rt.ts))
-        k0, hist0 = rt.ticks, len(rt.treatment.history)
-        fi.inject(name)
-        detected = None
+    injector: list[FaultInjector] = []
 
-        def reacted(r) -> bool:
-            nonlocal detected
-            if detected is None and (not r.state.startswith("treating.drilling")
-                                     or len(r.treatment.history) > hist0):
-                detected = r.ticks - 1
-            return r.state == "fault"
-        await rt.run(until=reacted, max_ticks=round(watch_s / rt.ts))
-        await rt.run(max_ticks=25)     # the safe state holds
-        final = rt.state
+    def inject(world, d: Devices) -> Devices:
+        fi = FaultInjector(world, d.arm, d.ft, d.motor, d.aux)
+        injector.append(fi)
+        return Devices(fi.arm, fi.ft, fi.motor, fi.aux)
+
+    def event(tick: int, kind: str, detail: str) -> None:
+        recorder.event(kind, detail, t=tick * proc.runtime.ts, tick=tick)
+
+    proc = Procedure.simulated(
+        WorldConfig(seed=seed), RuntimeConfig(plan=TreatmentPlan(orifice_gap_mm=2.0)),
+        sink=recorder.record, event_sink=event, devices=inject)
+    rt, w, fi = proc.runtime, proc.world, injector[0]
+    try:
+        async with proc:
+            await proc.command("drill")
+            await proc.run_for(engage_s)
+            k0, hist0 = rt.ticks, len(rt.treatment.history)
+            await proc.call(lambda: fi.inject(name))
+            detected = None
+
+            def reacted(r) -> bool:
+                nonlocal detected
+                if detected is None and (not r.state.startswith("treating.drilling")
+                                         or len(r.treatment.history) > hist0):
+                    detected = r.ticks - 1
+                return r.state == "fault"
+            await proc.run_for(watch_s, until=reacted)
+            await proc.run_for(ticks=25)     # the safe state holds
+            final = rt.state
     finally:
         recorder.close("fault" if rt.state == "fault" else "ok",
                        "; ".join(rt.treatment.fault_causes))
@@ -126,7 +133,6 @@ async def run_wire_fault(name: str, seed: int = 1, settle_s: float = 0.3,
                          watch_s: float = 2.0) -> FaultResult:
     """The same check over the wire: ``dentibot sim serve``'s simulators in this process, the
     four real drivers, the runtime on a real-time clock (idle: all streams read every tick)."""
-    from dentibot.app.hardware import hardware_runtime
     from dentibot.app.simulated import serve_wire, tool_geometry_of, true_gravity_model
     from dentibot.io.devices import open_devices
     from dentibot.runtime.config import Thresholds
@@ -139,26 +145,28 @@ async def run_wire_fault(name: str, seed: int = 1, settle_s: float = 0.3,
     th = Thresholds(stale_periods={"arm": 20, "ft": 20, "motor": 20, "aux": 100})
     rows: list[dict] = []
     async with serve_wire(world) as bot, open_devices(bot.devices_config()) as d:
-        rt = hardware_runtime(d, RuntimeConfig(tool=tool_geometry_of(world), thresholds=th),
+        proc = Procedure.over(d, RuntimeConfig(tool=tool_geometry_of(world), thresholds=th),
                               gravity=true_gravity_model(world), sink=rows.append)
-        await rt.run(max_ticks=round(settle_s / rt.ts))
-        if rt.state == "fault":
-            raise RuntimeError("wire selftest: the runtime faulted before the injection: "
-                               + "; ".join(rt.treatment.fault_causes))
-        k0 = rt.ticks
-        if name == "ft_stream_stop":
-            bot.netft.stop_stream()
-        elif name == "arm_disconnect":
-            bot.meca.drop_clients()
-        elif name == "can_silence":
-            bot.epos.muted = True
-        else:
-            bot.epos.inject_emcy(0x2310)
-        await rt.run(until=lambda r: r.state == "fault", max_ticks=round(watch_s / rt.ts))
-        detected = next((r["tick"] for r in rows[k0:] if r["state"] == "fault"), None)
-        await rt.run(max_ticks=25)
-        final = rt.state
-        arm_speed = max(abs(x) for x in world.arm.qdot)
+        rt = proc.runtime
+        async with proc:
+            await proc.run_for(settle_s)
+            if rt.state == "fault":
+                raise RuntimeError("wire selftest: the runtime faulted before the injection: "
+                                   + "; ".join(rt.treatment.fault_causes))
+            k0 = rt.ticks
+            if name == "ft_stream_stop":
+                bot.netft.stop_stream()
+            elif name == "arm_disconnect":
+                bot.meca.drop_clients()
+            elif name == "can_silence":
+                bot.epos.muted = True
+            else:
+                bot.epos.inject_emcy(0x2310)
+            await proc.run_for(watch_s, until=lambda r: r.state == "fault")
+            detected = next((r["tick"] for r in rows[k0:] if r["state"] == "fault"), None)
+            await proc.run_for(ticks=25)
+            final = rt.state
+            arm_speed = max(abs(x) for x in world.arm.qdot)
     ticks = [r["tick"] for r in rows]
     lost = rt.ticks - len(ticks) + (0 if ticks == list(range(len(ticks))) else 1)
     detected_ms = None if detected is None else (detected - k0 + 1) * rt.ts * 1e3

@@ -1,25 +1,20 @@
-"""The runtime on the built-in simulator in lock-step time (tests, experiments, protocol runs).
-
-:class:`SimHarness` builds a :class:`~dentibot.sim.world.World`, its in-process devices, a
-:class:`~dentibot.runtime.clock.LockStepClock` that steps the world once per tick, and a
-:class:`~dentibot.runtime.control_task.Runtime` whose tool geometry matches the simulated
-tool. ``truth()`` adds what only a simulation knows to each telemetry row (phantom pose, true
-depth, completeness, fracture); the control never reads it.
+"""The built-in simulator as a procedure's devices: the world, its in-process devices, the
+configuration that agrees with it, what only a simulation knows (:class:`Truth`), and the wire
+simulators on loopback (:func:`serve_wire`). :meth:`dentibot.app.procedure.Procedure.simulated`
+puts them under a runtime.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-from collections.abc import Callable
 
 import numpy as np
 
 from dentibot.control.kinematics import euler_xyz_deg
 from dentibot.control.wrench import GravityModel
-from dentibot.runtime.clock import Clock, LockStepClock
 from dentibot.runtime.config import RuntimeConfig, ToolGeometry, TreatmentPlan
-from dentibot.runtime.control_task import Devices, Runtime
+from dentibot.runtime.estimate import Devices
 from dentibot.sim.devices import make_devices
 from dentibot.sim.patient import SQUARE_MM, StewartSquare
 from dentibot.sim.serve import ServePorts, VirtualDentiBot
@@ -27,8 +22,8 @@ from dentibot.sim.world import World, WorldConfig
 
 #: The parts of the simulated world that workflows set up themselves (experiment 1's Stewart
 #: platform square), handed on so that nothing above this layer imports the simulator.
-__all__ = ["SQUARE_MM", "SimHarness", "StewartSquare", "World", "WorldConfig", "serve_wire",
-           "tool_geometry_of", "true_gravity_model"]
+__all__ = ["SQUARE_MM", "StewartSquare", "Truth", "World", "WorldConfig", "plan_config",
+           "serve_wire", "sim_devices", "tool_geometry_of", "true_gravity_model"]
 
 
 def tool_geometry_of(world: World) -> ToolGeometry:
@@ -49,38 +44,33 @@ def true_gravity_model(world: World) -> GravityModel:
         mount_angle_deg=s.p.mount_angle_deg)
 
 
-class SimHarness:
-    """World + devices + lock-step clock + runtime, ready to run.
+def plan_config(world: World, config: RuntimeConfig | None = None) -> RuntimeConfig:
+    """``config`` completed by what the simulated world knows: without a configuration the plan
+    is the simulated tooth's (the orifice gap the world puts between the tip and the canal, and
+    the canal's working length: depth 0 is the canal orifice); without a tool geometry, the
+    simulated tool's."""
+    cfg = config or RuntimeConfig(plan=TreatmentPlan(
+        working_length_mm=world.canal.p.working_length_mm,
+        orifice_gap_mm=world.config.orifice_gap_mm))
+    if cfg.tool == ToolGeometry():
+        cfg = dataclasses.replace(cfg, tool=tool_geometry_of(world))
+    return cfg
 
-    ``clock(step, period_s)`` makes the clock (default: lock step, one world step per tick).
-    ``config`` defaults to one that agrees with the world: its tool geometry, and a treatment
-    plan with the world's orifice gap and working length (depth 0 is the canal orifice).
-    """
 
-    def __init__(self, world: World | WorldConfig | None = None,
-                 config: RuntimeConfig | None = None, *, calibrated: bool = True,
-                 sink=None, step_name: str = "",
-                 clock: Callable[[Callable[[], None], float], Clock] | None = None) -> None:
-        if not isinstance(world, World):
-            world = World(world)
-        self.world = w = world
-        # Without a configuration the plan is the simulated tooth's: the orifice gap the world
-        # puts between the tip and the canal, and the canal's working length.
-        cfg = config or RuntimeConfig(plan=TreatmentPlan(
-            working_length_mm=w.canal.p.working_length_mm,
-            orifice_gap_mm=w.config.orifice_gap_mm))
-        if cfg.tool == ToolGeometry():
-            cfg = dataclasses.replace(cfg, tool=tool_geometry_of(w))
-        self.config = cfg
-        arm, ft, motor, aux = make_devices(w)
-        self.devices = Devices(arm, ft, motor, aux)
-        self.clock = (clock or LockStepClock)(w.step, cfg.period_s)
-        self.runtime = Runtime(self.devices, cfg, self.clock,
-                               gravity=true_gravity_model(w) if calibrated else None,
-                               sink=sink, truth=self.truth, step_name=step_name)
-        self._phantom_euler = euler_xyz_deg(w.phantom_pose[:3, :3].tolist())
+def sim_devices(world: World) -> Devices:
+    """The world's in-process devices (arm, F/T sensor, handpiece, aux I/O)."""
+    return Devices(*make_devices(world))
 
-    def truth(self) -> dict:
+
+class Truth:
+    """What only a simulation knows, added to every telemetry row (phantom pose, true depth,
+    completeness, fracture); the control never reads it."""
+
+    def __init__(self, world: World) -> None:
+        self.world = world
+        self._phantom_euler = euler_xyz_deg(world.phantom_pose[:3, :3].tolist())
+
+    def __call__(self) -> dict:
         w = self.world
         o, t0 = w.canal_axis_0()
         tip = w.tip_0

@@ -1,11 +1,11 @@
-"""The protocol's steps on a running runtime: what ``calibrate_load``, ``drag``, ``align`` and
-``drill`` do, and the safe stop.
+"""The protocol's steps on a running procedure: what ``calibrate_load``, ``drag``, ``align``
+and ``drill`` do.
 
 One :class:`StepExecutor` serves both the protocol runner (unattended: a refused command
 faults the runtime and the run ends) and the interactive session (a refused command ends the
-step and is shown to the operator: it overrides :meth:`StepExecutor.command`). The executor
-uses only the runtime's ``run``, ``command``, ``state``, ``treatment``, ``cfg`` and devices, so
-the session can hand it a view of its running control task.
+step and is shown to the operator: it overrides :meth:`StepExecutor.command`). Both drive the
+procedure the same way: commands and set-up between two ticks through its gate, waits for the
+ticks of its running loop (:class:`~dentibot.app.procedure.Procedure`).
 """
 
 from __future__ import annotations
@@ -13,20 +13,15 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 
-import structlog
-
+from dentibot.app.procedure import RETRACT_TIMEOUT_S, Procedure
 from dentibot.control.admittance import EXPERIMENT_1
 from dentibot.control.feedrate import FeedrateParams
 from dentibot.runtime.config import TreatmentPlan
 from dentibot.runtime.control_task import Runtime
-from dentibot.states.strategies import StrategyParams, make_strategy
-
-log = structlog.get_logger("dentibot.protocol")
+from dentibot.states.strategies import StrategyParams
 
 #: Longest time a single pass may take before the runner stops waiting (simulated s).
 PASS_TIMEOUT_S = 600.0
-#: Longest time the safe stop may spend withdrawing the file (simulated s).
-RETRACT_TIMEOUT_S = 20.0
 #: Thesis 5.3: spindle speed 60 rpm.
 DRILLING_RPM = 60.0
 #: The step kinds of a protocol, each a method of :class:`StepExecutor`.
@@ -53,32 +48,33 @@ def align_plan(plan: TreatmentPlan, spec) -> TreatmentPlan:
         align_params=c.params, align_feedrate=feedrate)
 
 
-def apply_drill(rt: Runtime, spec) -> None:
-    """Set up ``rt`` for a drill step: strategy, tau_d and fz bounds (eq 5.7), file speed."""
+def drill_setup(rt: Runtime, spec) -> None:
+    """Set up ``rt`` for a drill step (between two ticks): strategy, tau_d and fz bounds
+    (eq 5.7), file speed."""
     strategy = StrategyParams(
         name=spec.strategy, section_mm=spec.section_mm, min_rounds=spec.min_rounds,
         feedrate=FeedrateParams(tau_d_mnm=spec.tau_d_mnm, fz_min_n=spec.fz_min_n,
                                 fz_max_n=spec.fz_max_n))
-    rt.cfg = dataclasses.replace(
-        rt.cfg, plan=dataclasses.replace(rt.cfg.plan, strategy=strategy),
-        handpiece=dataclasses.replace(rt.cfg.handpiece, drilling_rpm=spec.rpm))
-    rt.ctx.strategy = make_strategy(strategy, rt.cfg.plan.working_length_mm, rt.ts)
+    rt.configure(plan=dataclasses.replace(rt.cfg.plan, strategy=strategy),
+                 handpiece=dataclasses.replace(rt.cfg.handpiece, drilling_rpm=spec.rpm),
+                 restart_strategy=True)
 
 
-def _at_rest(rt: Runtime) -> bool:
-    e = rt.last
-    return e is not None and abs(e.motor_rpm) < 1.0 and rt.last_row is not None and \
-        max(abs(x) for x in rt.last_row["qdot_cmd_deg_s"]) == 0.0
+def _passes(rt: Runtime, n: int) -> Callable[[], None]:
+    def set_passes() -> None:
+        rt.treatment.passes_left = n
+    return set_passes
 
 
 class StepExecutor:
-    """Runs protocol steps on ``rt`` (and, on the built-in simulator, acts the operator's hand
-    on ``world``). ``aborted()`` is polled before and after every wait: when true the step
-    raises :class:`Aborted`."""
+    """Runs protocol steps on the procedure ``proc`` (and, on the built-in simulator, acts the
+    operator's hand on its world). ``aborted()`` is checked before every wait and in every
+    tick of it: when true the step raises :class:`Aborted`."""
 
-    def __init__(self, rt, world=None, aborted: Callable[[], bool] = lambda: False) -> None:
-        self.rt = rt
-        self.world = world
+    def __init__(self, proc: Procedure, aborted: Callable[[], bool] = lambda: False) -> None:
+        self.proc = proc
+        self.rt = proc.runtime
+        self.world = proc.world
         self._aborted = aborted
 
     async def step(self, kind: str, spec) -> None:
@@ -88,12 +84,13 @@ class StepExecutor:
         await getattr(self, kind)(spec)
 
     async def run_for(self, seconds: float, until=None) -> None:
-        """Let the runtime run ``seconds`` (or until ``until(rt)`` or a fault)."""
-        if self._aborted():
+        """Let the procedure run ``seconds`` (or until ``until(rt)``, a fault or an abort)."""
+        aborted = self._aborted
+        if aborted():
             raise Aborted
-        await self.rt.run(until=lambda r: r.state == "fault" or (until is not None and until(r)),
-                          max_ticks=max(1, round(seconds / self.rt.ts)))
-        if self._aborted():
+        await self.proc.run_for(seconds, until=lambda r: r.state == "fault" or aborted() or (
+            until is not None and until(r)))
+        if aborted():
             raise Aborted
 
     async def command(self, trigger: str, already: str | None = None) -> None:
@@ -101,10 +98,15 @@ class StepExecutor:
         refusal is a fault naming it."""
         if already is not None and self.rt.state == already:
             return
-        refusal = await self.rt.command(trigger)
+        refusal = await self.proc.command(trigger)
         if refusal is not None:
-            await self.rt.command("fault")
-            self.rt.treatment.fault_causes[-1] = f"protocol step: {refusal}"
+            rt = self.rt
+
+            async def fault() -> None:
+                await rt.command("fault")
+                rt.treatment.fault_causes[-1] = f"protocol step: {refusal}"
+
+            await self.proc.call(fault)
 
     # ---------------------------------------------------------------- the steps
     async def calibrate_load(self, spec) -> None:
@@ -124,49 +126,31 @@ class StepExecutor:
 
     async def align(self, spec) -> None:
         rt = self.rt
-        rt.cfg = dataclasses.replace(rt.cfg, plan=align_plan(rt.cfg.plan, spec))
+        await self.proc.call(lambda: rt.configure(plan=align_plan(rt.cfg.plan, spec)))
         await self.command("align", already="self_aligning")
         await self.run_for(spec.duration_s)
 
     async def drill(self, spec) -> None:
         """Rounds of drilling passes until each round's time is up, then a retraction; without
         rounds, one pass."""
-        rt = self.rt
-        apply_drill(rt, spec)
+        rt, proc = self.rt, self.proc
+        await proc.call(lambda: drill_setup(rt, spec))
         finished = ("done", "fault")
         if not spec.rounds:
-            rt.treatment.passes_left = 0
-            await self.command("drill")
+            await self.start_drilling(passes=0)
             await self.run_for(PASS_TIMEOUT_S, until=lambda r: r.state in finished)
             return
         for rnd in spec.rounds:
-            rt.treatment.passes_left = 10**6     # keep cleaning until the round's time is up
-            await self.command("drill")
+            await self.start_drilling(passes=10**6)   # cleaning until the round's time is up
             await self.run_for(rnd.duration_s, until=lambda r: r.state in finished)
             if rt.state == "fault":
                 return
-            rt.treatment.passes_left = 0
+            await proc.call(_passes(rt, 0))
             if rt.state != "treating.retracting":
                 await self.command("retract")
             await self.run_for(RETRACT_TIMEOUT_S, until=lambda r: r.state in finished)
 
-    # ---------------------------------------------------------------- safe stop
-    async def safe_stop(self) -> None:
-        """File stopped, withdrawn where possible, arm stopped; never raises."""
-        rt = self.rt
-        try:
-            if rt.treatment.in_state("treating") and rt.state != "treating.retracting":
-                await rt.command("retract")
-            if rt.state == "treating.retracting":
-                await rt.run(until=lambda r: r.state != "treating.retracting",
-                             max_ticks=round(RETRACT_TIMEOUT_S / rt.ts))
-            if rt.state != "fault":
-                await rt.command("stop")
-            # record the file and the arm coming to rest (or 1 s of it)
-            await rt.run(until=_at_rest, max_ticks=round(1.0 / rt.ts))
-        finally:
-            for dev in (rt.dev.motor, rt.dev.arm):
-                try:
-                    await dev.stop()
-                except Exception as exc:  # noqa: BLE001 - stop the other device too
-                    log.warning("safe stop: device stop failed", error=str(exc))
+    async def start_drilling(self, passes: int) -> None:
+        """The drill command, with ``passes`` more passes after the first."""
+        await self.proc.call(_passes(self.rt, passes))
+        await self.command("drill")

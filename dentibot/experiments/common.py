@@ -90,17 +90,10 @@ def run_protocol(protocol: Protocol, tap: Callable[[dict, ProtocolRunner], None]
     time): the result's summary then carries the status and its reason, the figures come from
     the tap.
     """
-    runner = ProtocolRunner(protocol, no_record=True)
+    runner = ProtocolRunner(protocol, no_record=True, tap=lambda row: tap(row, runner),
+                            live_summary=feed_summary)
     if prepare is not None:
         prepare(runner)
-    own = runner.rt.sink
-
-    def sink(row: dict) -> None:
-        if feed_summary:
-            own(row)
-        tap(row, runner)
-
-    runner.rt.sink = sink
     result = asyncio.run(runner.run())
     return result, runner
 

@@ -8,7 +8,10 @@
   A tick that starts more than a whole period late is counted as missed and the schedule
   skips ahead (no burst of catch-up ticks).
 - :class:`LockStepClock`: simulated time; ``wait_next`` steps the world by exactly one period
-  (as fast as the machine allows) and is never late.
+  and is never late. Free running (as fast as the machine allows), ``paced`` (also waits for
+  each tick's wall-clock deadline: the built-in simulator at the speed of the real world) or
+  ``held`` (time passes only by the ticks granted to it: a procedure driven by its steps, or a
+  test driving a session's time separately from its terminal).
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ import gc
 import bisect
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 
 from dentibot.errors import ConfigError
 
@@ -99,6 +102,9 @@ class Clock:
     def now(self) -> float:
         raise NotImplementedError
 
+    async def wait_first(self) -> None:
+        """Called once before the first tick (which is not waited for)."""
+
     async def wait_next(self) -> float:
         raise NotImplementedError
 
@@ -149,27 +155,88 @@ class LockStepClock(Clock):
     ``paced``: each tick then also waits for its wall-clock deadline (a
     :class:`RealTimeClock`'s waiting): the built-in simulator at the speed of the real world,
     e.g. for an interactive session; ticks then have deadlines (``realtime``).
+
+    ``held``: no tick runs until ticks are granted (``grant(n)``); ``hold()`` takes back what is
+    left, ``release()`` lets ticks run freely from then on. While held, ``wait_next`` awaits
+    ``serve()`` whenever it is woken (``wake()``): the owner does the work submitted between
+    two ticks there (see :class:`~dentibot.runtime.gate.TickGate`). ``halt()`` makes a held
+    ``wait_next`` return without stepping (the loop is being stopped).
     """
 
     def __init__(self, step: Callable[[], None], period_s: float = 0.002,
-                 yield_every: int = 10, *, paced: bool = False) -> None:
+                 yield_every: int = 10, *, paced: bool = False, held: bool = False) -> None:
         self.period_s = _check_period(period_s)
         self._step = step
         self._yield_every = max(1, int(yield_every))
         self._pace = RealTimeClock(period_s) if paced else None
         self.realtime = paced
         self.skipped = 0
+        self._credits = 0.0 if held else math.inf
+        self._wake: asyncio.Event | None = None
+        self._halted = False
+        #: awaited while held, each time the clock is woken
+        self.serve: Callable[[], Awaitable[None]] | None = None
         self.start()
 
     def start(self) -> None:
         self._k = 0
+        self._halted = False
         if self._pace is not None:
             self._pace.start()
 
     def now(self) -> float:
         return self._k * self.period_s
 
+    # ------------------------------------------------------------ holding
+    @property
+    def held(self) -> bool:
+        """True while no tick may run (nothing granted)."""
+        return self._credits <= 0
+
+    def grant(self, ticks: int) -> None:
+        self._credits += ticks
+        self.wake()
+
+    def hold(self) -> None:
+        """No more ticks until the next grant (unless released)."""
+        if self._credits != math.inf:
+            self._credits = 0
+
+    def release(self) -> None:
+        self._credits = math.inf
+        self.wake()
+
+    def wake(self) -> None:
+        if self._wake is not None:
+            self._wake.set()
+
+    def halt(self) -> None:
+        self._halted = True
+        self.wake()
+
+    async def _granted(self) -> bool:
+        """Wait (serving) until a tick is granted; False when halted meanwhile."""
+        while self._credits <= 0:
+            if self._halted:
+                return False
+            if self._wake is None:
+                self._wake = asyncio.Event()
+            self._wake.clear()
+            if self.serve is not None:
+                await self.serve()
+            if self._credits <= 0 and not self._halted:
+                await self._wake.wait()
+        return True
+
+    async def wait_first(self) -> None:
+        """Before the first tick: held, it takes a granted tick too (no world step)."""
+        if await self._granted():
+            self._credits -= 1
+
     async def wait_next(self) -> float:
+        if not await self._granted():
+            return 0.0
+        self._credits -= 1
         self._step()
         self._k += 1
         if self._pace is not None:

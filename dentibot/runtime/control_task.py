@@ -13,7 +13,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 
 import numpy as np
 import structlog
@@ -30,7 +30,7 @@ from dentibot.runtime.rows import telemetry_row
 from dentibot.runtime.supervisor import Finding, Supervisor
 from dentibot.runtime.tool import reference_transforms, tool_matrix
 from dentibot.states.behaviours import Context, feed_force_n, make_behaviours
-from dentibot.states.modes import MODES, Mode, admittance_params, file_command
+from dentibot.states.modes import MODES, Mode, admittance_params, send_file_command
 from dentibot.states.strategies import make_strategy
 from dentibot.states.treatment import Refusal, Treatment
 
@@ -50,6 +50,7 @@ class Runtime:
 
     def __init__(self, devices: Devices, config: RuntimeConfig, clock: Clock, *,
                  gravity: GravityModel | None = None, sink: Callable[[dict], None] | None = None,
+                 event_sink: Callable[[int, str, str], None] | None = None,
                  truth: Callable[[], dict] | None = None, step_name: str = "") -> None:
         self.dev = devices
         self.cfg = config
@@ -74,7 +75,7 @@ class Runtime:
         self.truth = truth
         self.step_name = step_name
         #: ``event_sink(tick, kind, detail)`` gets every event, command and fault as it happens.
-        self.event_sink: Callable[[int, str, str], None] | None = None
+        self.event_sink = event_sink
         self.ticks = 0
         self.events_log: list[tuple[int, str, str]] = []   # (tick, kind, detail)
         self.last: Estimate | None = None
@@ -105,12 +106,12 @@ class Runtime:
     async def estop(self, cause: str = "software emergency stop") -> None:
         """Software emergency stop: file and arm stopped now (not at the next tick), then
         the latched fault; only ``reset`` leaves it."""
-        await self._stop_devices()
+        await self.stop_devices()
         await self.treatment.fire("fault", cause)
         self._note("fault", cause)
 
-    async def _stop_devices(self) -> None:
-        """The file first, then the arm; a device that is itself the fault must not keep the
+    async def stop_devices(self) -> None:
+        """Stop the file first, then the arm; a device that is itself the fault must not keep the
         other from stopping."""
         for device in (self.dev.motor, self.dev.arm):
             try:
@@ -119,17 +120,29 @@ class Runtime:
                 log.warning("stop command failed", device=type(device).__name__, error=str(exc))
         self.file_cmd = ("stop",)
 
+    def configure(self, *, plan=None, handpiece=None, restart_strategy: bool = False) -> None:
+        """A new plan and/or handpiece settings from the next tick (a step's set-up, between
+        two ticks); ``restart_strategy``: a fresh drilling strategy from the plan's."""
+        self.cfg = dataclasses.replace(self.cfg, plan=plan or self.cfg.plan,
+                                       handpiece=handpiece or self.cfg.handpiece)
+        if restart_strategy:
+            self.ctx.strategy = make_strategy(self.cfg.plan.strategy,
+                                              self.cfg.plan.working_length_mm, self.ts)
+
     def request_stop(self) -> None:
         """Ask :meth:`run` to return after the current tick."""
         self._stop.set()
 
     async def run(self, until: Callable[[Runtime], bool] | None = None,
-                  max_ticks: int | None = None) -> None:
-        """Tick until ``until(self)`` is true, ``max_ticks`` ticks ran or ``request_stop``; in
-        real time the garbage collector runs only in the slack after a tick
-        (:func:`~dentibot.runtime.clock.quiet_collector`)."""
+                  max_ticks: int | None = None,
+                  between: Callable[[], Awaitable[None]] | None = None) -> None:
+        """Tick until ``until(self)`` is true, ``max_ticks`` ticks ran or ``request_stop``.
+        ``between()`` is awaited after every tick, before waiting for the next one (the
+        procedure's gate: commands and waiters). In real time the garbage collector runs only
+        in the slack after a tick (:func:`~dentibot.runtime.clock.quiet_collector`)."""
         self._stop.clear()
         self.clock.start()
+        await self.clock.wait_first()
         lateness = 0.0
         n = 0
         with quiet_collector(self.clock.realtime) as collect:
@@ -142,6 +155,10 @@ class Runtime:
                         until is not None and until(self)):
                     break
                 collect(n)
+                if between is not None:
+                    await between()
+                    if self._stop.is_set():
+                        break
                 lateness = await self.clock.wait_next()
         self.stats.skipped = self.clock.skipped
 
@@ -232,7 +249,7 @@ class Runtime:
         self._state = state
         mode = self.mode = MODES[state]
         if mode.arm == "stop":
-            await self._stop_devices()
+            await self.stop_devices()
             return
         if mode.admittance is not None:
             params = admittance_params(mode, self.cfg.plan)
@@ -244,20 +261,7 @@ class Runtime:
                     est2 = self._estimate(est.q_deg, est.wrench_s, MotorView(est))
                     est.wrench_h, est.force_norm_n = est2.wrench_h, est2.force_norm_n
         self.behaviours[state].enter(self.ctx, self, est, prev)
-        await self._file(mode)
-
-    async def _file(self, mode: Mode) -> None:
-        hp = self.cfg.handpiece
-        cmd = file_command(mode, hp.drilling_rpm, self.cfg.plan.align_rpm)
-        if cmd == ("reverse",):
-            await self.dev.motor.move_relative(-hp.reversal_deg)
-        elif cmd == self.file_cmd:
-            return
-        elif cmd[0] == "vel" and cmd[1] != 0.0:
-            await self.dev.motor.set_velocity(cmd[1])
-        else:
-            await self.dev.motor.stop()
-        self.file_cmd = cmd
+        self.file_cmd = await send_file_command(self.dev.motor, mode, self.cfg, self.file_cmd)
 
     async def _command(self, est: Estimate):
         mode = self.mode
@@ -272,8 +276,8 @@ class Runtime:
         if mode.arm == "hold":
             await arm.move_joints_vel(_ZERO6)
             return _ZERO6
-        cmd = admittance_command(self.admittance, est.q_deg, est.wrench_h, self.feed_force_n(mode),
-                                 self.chain)
+        cmd = admittance_command(self.admittance, est.q_deg, est.wrench_h,
+                                 feed_force_n(mode, self.ctx, self.cfg.plan), self.chain)
         bad = self.supervisor.check_command(cmd.qdot_deg_s, cmd.twist, self._speed_limits)
         if bad:
             self._pending.extend(("fault", str(f)) for f in bad)
@@ -284,9 +288,6 @@ class Runtime:
         except DentibotError as exc:
             self._pending.append(("fault", f"arm refused the command: {exc}"))
         return cmd.qdot_deg_s
-
-    def feed_force_n(self, mode: Mode) -> float:
-        return feed_force_n(mode, self.ctx, self.cfg.plan)
 
     def _note(self, kind: str, detail: str) -> None:
         self.events_log.append((self.ticks, kind, detail))

@@ -1,35 +1,28 @@
 """The gate between two control ticks: work submitted to a running control loop.
 
-A control task that runs all the time (the interactive session's, from ``connect`` to
-``quit``, in the same event loop as the terminal UI) takes its commands through the gate. Operator commands must not reach the state machine in the middle of a
-tick: the machine (transitions' asyncio machine) yields inside ``fire`` and cancels a
-transition that is still running when another one starts. So every command goes through a
-:class:`TickGate`: it is queued and executed by the control task itself between two ticks
-(after tick k, before tick k + 1), and the next tick applies the new state's entry actions, as
-in a protocol run. The gate also wakes whoever waits for a condition on the runtime (a timed
-step, a safe stop) after each tick.
+A procedure's control task runs all the time (from start to stop), and everything else (the
+protocol's steps, the operator's commands, a test) submits work to it. Nothing may reach the
+state machine in the middle of a tick: the machine (transitions' asyncio machine) yields
+inside ``fire`` and cancels a transition that is still running when another one starts. So
+every command goes through a :class:`TickGate`: it is queued and executed by the control task
+itself between two ticks (after tick k, before tick k + 1), and the next tick applies the new
+state's entry actions. The gate also wakes whoever waits for a condition on the runtime (a
+timed step, a safe stop) in the tick where it holds.
 
-The loop serves the gate through its clock (any clock wrapped in :class:`GatedClock`):
-
-- :class:`~dentibot.runtime.clock.LockStepClock`: as fast as the machine allows, or
-  ``paced``: the built-in simulator in real time (one world step per tick, then the tick's
-  wall-clock deadline).
-- :class:`SteppedClock`: lock-step time that advances only by the ticks granted to it
-  (``grant``), serving the gate while it waits: tests drive the terminal UI and the simulated
-  time separately, deterministically.
-- real devices: :class:`~dentibot.runtime.clock.RealTimeClock`.
+The control loop serves the gate after every tick (``Runtime.run(between=gate.between)``) and,
+while a held :class:`~dentibot.runtime.clock.LockStepClock` waits for ticks to be granted,
+each time work is submitted (``clock.serve = gate.run_actions``).
 """
 
 from __future__ import annotations
 
 import asyncio
 import collections
-import math
-from collections.abc import Awaitable, Callable
+import inspect
+from collections.abc import Callable
 from typing import Any
 
 from dentibot.errors import DentibotError
-from dentibot.runtime.clock import Clock
 
 
 class GateClosed(DentibotError):
@@ -56,8 +49,9 @@ class TickGate:
         self.runtime = runtime
         self._closed = None
 
-    def submit(self, action: Callable[[], Awaitable[Any]]) -> asyncio.Future:
-        """Run ``await action()`` between two ticks; the future gets its result."""
+    def submit(self, action: Callable[[], Any]) -> asyncio.Future:
+        """Run ``action()`` between two ticks (awaited when it returns an awaitable); the
+        future gets its result."""
         if self._closed is not None:
             raise GateClosed(self._closed)
         fut = asyncio.get_running_loop().create_future()
@@ -122,7 +116,9 @@ class TickGate:
             if fut.done():                  # cancelled by its caller before it ran
                 continue
             try:
-                result = await action()
+                result = action()
+                if inspect.isawaitable(result):
+                    result = await result
             except Exception as exc:  # noqa: BLE001 - reported to the caller, the loop goes on
                 if not fut.done():
                     fut.set_exception(exc)
@@ -152,85 +148,3 @@ class TickGate:
             elif not w[0].done():
                 w[0].set_exception(GateClosed(why))
         self._waiters = []
-
-
-class GatedClock(Clock):
-    """``inner`` with the gate's work done before each wait (in the slack of the tick)."""
-
-    def __init__(self, inner: Clock, gate: TickGate) -> None:
-        self.inner = inner
-        self.gate = gate
-        self.period_s = inner.period_s
-        self.realtime = inner.realtime
-
-    @property
-    def skipped(self) -> int:
-        return getattr(self.inner, "skipped", 0)
-
-    def start(self) -> None:
-        self.inner.start()
-
-    def now(self) -> float:
-        return self.inner.now()
-
-    async def wait_next(self) -> float:
-        await self.gate.between()
-        return await self.inner.wait_next()
-
-
-class SteppedClock(Clock):
-    """Lock-step time that advances only by granted ticks; serves the gate while held.
-
-    ``grant(n)`` lets ``n`` more ticks run (as fast as the machine allows); ``release()``
-    lets them run freely from then on (as :class:`~dentibot.runtime.clock.LockStepClock`).
-    """
-
-    realtime = False
-
-    def __init__(self, step: Callable[[], None], gate: TickGate, period_s: float = 0.002,
-                 yield_every: int = 10) -> None:
-        self.period_s = period_s
-        self._step = step
-        self._gate = gate
-        self._yield_every = max(1, int(yield_every))
-        self._credits = 0.0
-        self._wake = asyncio.Event()
-        self.skipped = 0
-        gate.on_submit = self._wake.set
-        self.start()
-
-    def start(self) -> None:
-        self._k = 0
-
-    def now(self) -> float:
-        return self._k * self.period_s
-
-    def grant(self, ticks: int) -> None:
-        self._credits += ticks
-        self._wake.set()
-
-    def hold(self) -> None:
-        """No more ticks until the next grant (unless released)."""
-        if self._credits != math.inf:
-            self._credits = 0
-
-    def release(self) -> None:
-        self._credits = math.inf
-        self._wake.set()
-
-    @property
-    def held(self) -> bool:
-        return self._credits <= 0
-
-    async def wait_next(self) -> float:
-        while self._credits <= 0:
-            self._wake.clear()
-            if not self._gate.pending:
-                await self._wake.wait()
-            await self._gate.run_actions()
-        self._credits -= 1
-        self._step()
-        self._k += 1
-        if self._k % self._yield_every == 0:
-            await asyncio.sleep(0)
-        return 0.0

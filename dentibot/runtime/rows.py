@@ -5,13 +5,14 @@ from __future__ import annotations
 
 from dentibot.control.kinematics import euler_xyz_deg
 from dentibot.runtime.estimate import Estimate
+from dentibot.states.behaviours import feed_force_n
 
 
 def telemetry_row(rt, k: int, est: Estimate, qdot, events, lateness_s: float,
                   compute_s: float) -> dict:
     """Step 6 of the tick: the telemetry row of tick ``k`` (fields: :data:`TICK_FIELDS`)."""
     mode = rt.mode
-    fz = rt.feed_force_n(mode) if mode.arm == "admittance" else 0.0
+    fz = feed_force_n(mode, rt.ctx, rt.cfg.plan) if mode.arm == "admittance" else 0.0
     euler = euler_xyz_deg((rt.r_0_6 @ rt.R_6_H).tolist())
     row = {
         "t": k * rt.ts, "tick": k, "step": rt.step_name, "state": rt.treatment.state,

@@ -1,13 +1,12 @@
 """The interactive session without its screen: devices, the running control task, commands.
 
-:class:`SessionController` owns one procedure: ``connect`` builds the runtime over the
-built-in simulator (:class:`~dentibot.app.simulated.SimHarness` with a gated clock) or over
-the real drivers (:func:`~dentibot.io.devices.open_devices`, as ``dentibot run --devices``
-does), and starts the control task, which then ticks until ``quit``. Every operator command
-goes through the state machine (``Runtime.command``), executed between two ticks by the
-:class:`~dentibot.runtime.gate.TickGate`: no command bypasses the machine, the limits or the
-supervisor, and a refused command comes back with the machine's reason (which state, what it
-needs first).
+:class:`SessionController` owns one :class:`~dentibot.app.procedure.Procedure`: ``connect``
+builds it over the built-in simulator or over the real drivers
+(:func:`~dentibot.io.devices.open_devices`, as ``dentibot run --devices`` does) and starts its
+control task, which then ticks until ``quit``. Every operator command goes through the state
+machine (``Runtime.command``), executed between two ticks by the procedure's gate: no command
+bypasses the machine, the limits or the supervisor, and a refused command comes back with the
+machine's reason (which state, what it needs first).
 
 Timed steps (``step drag duration_s=2``, ``drill`` to the working length, rounds) are the
 protocol runner's own steps (:class:`~dentibot.app.steps.StepExecutor`), run as a
@@ -21,7 +20,6 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
-import dataclasses
 import threading
 import time
 from dataclasses import dataclass, field
@@ -29,21 +27,14 @@ from pathlib import Path
 
 import structlog
 
-from dentibot.app.hardware import hardware_runtime
+from dentibot.app.procedure import Procedure
 from dentibot.app.runner import runtime_config, world_config
-from dentibot.app.simulated import SimHarness
 from dentibot.app.steps import StepExecutor, align_plan
 from dentibot.errors import DentibotError
 from dentibot.io.devices import DevicesConfig, load_devices_config, open_devices
 from dentibot.protocol.schema import Protocol
-from dentibot.runtime.clock import LockStepClock, RealTimeClock
 from dentibot.runtime.control_task import Runtime
-from dentibot.runtime.gate import (
-    GateClosed,
-    GatedClock,
-    SteppedClock,
-    TickGate,
-)
+from dentibot.runtime.gate import GateClosed
 from dentibot.session.commands import (
     COMMANDS,
     Command,
@@ -58,7 +49,10 @@ from dentibot.telemetry.schema import TelemetryError
 
 log = structlog.get_logger("dentibot.session")
 
-CLOCKS = ("realtime", "lockstep", "stepped")
+#: The session's clocks on the built-in simulator and the procedure's time for each: the
+#: stepped clock is held lock-step time that only :meth:`SessionController.advance` drives.
+SIM_TIME = {"realtime": "paced", "lockstep": "free", "stepped": "lockstep"}
+CLOCKS = tuple(SIM_TIME)
 
 #: Operator triggers and the command that sends each (``status`` lists what the state takes).
 OPERATOR_TRIGGERS = {
@@ -152,41 +146,19 @@ class StepRefused(DentibotError):
         super().__init__(str(refusal))
 
 
-class _LiveRuntime:
-    """The running runtime as the protocol runner's steps see it: ``run(until, max_ticks)``
-    waits for ticks of the running control task instead of running them, ``command`` is
-    executed between two ticks; everything else is the runtime itself."""
-
-    def __init__(self, session: SessionController) -> None:
-        object.__setattr__(self, "_session", session)
-
-    def __getattr__(self, name: str):
-        return getattr(self._session.runtime, name)
-
-    def __setattr__(self, name: str, value) -> None:
-        setattr(self._session.runtime, name, value)
-
-    async def run(self, until=None, max_ticks: int | None = None) -> None:
-        await self._session.gate.wait(until, max_ticks)
-
-    async def command(self, trigger: str) -> Refusal | None:
-        rt = self._session.runtime
-        return await self._session.gate.submit(lambda: rt.command(trigger))
-
-
 class _LiveSteps(StepExecutor):
-    """The protocol's steps and safe stop on the session's running control task. A refused
-    command ends the step with the refusal (the runner, unattended, faults instead)."""
+    """The protocol's steps on the session's running procedure. A refused command ends the
+    step with the refusal (the runner, unattended, faults instead)."""
 
     def __init__(self, session: SessionController) -> None:
-        super().__init__(_LiveRuntime(session), session.world)
+        super().__init__(session.procedure)
         #: the outcome of the step's first command (None: taken, else the Refusal)
         self.first: asyncio.Future = asyncio.get_running_loop().create_future()
 
     async def command(self, trigger: str, already: str | None = None) -> None:
         refusal = None
         if already is None or self.rt.state != already:
-            refusal = await self.rt.command(trigger)
+            refusal = await self.proc.command(trigger)
         if not self.first.done():
             self.first.set_result(refusal)
         if refusal is not None:
@@ -226,11 +198,9 @@ class SessionController:
     def __init__(self, options: SessionOptions | None = None) -> None:
         self.opt = options or SessionOptions()
         self.protocol = self.opt.protocol or default_protocol()
-        self.gate = TickGate()
+        self.procedure: Procedure | None = None
         self.runtime: Runtime | None = None
         self.world = None
-        self.harness: SimHarness | None = None
-        self.clock = None                      # the inner clock (Stepped, Paced ...)
         self.devices_cfg = self.opt.devices
         self.recorder: McapRecorder | None = None
         self.recording_error: str | None = None
@@ -239,7 +209,6 @@ class SessionController:
         #: (kind, text) for the screen: events of the control task, steps that ended ...
         self.messages: collections.deque[tuple[str, str]] = collections.deque(maxlen=1000)
         self._stack: contextlib.AsyncExitStack | None = None
-        self._control: asyncio.Task | None = None
         self._activity: asyncio.Task | None = None
         self._activity_name: str | None = None
         self._activity_end = ""
@@ -252,8 +221,7 @@ class SessionController:
     # ------------------------------------------------------------------ properties
     @property
     def connected(self) -> bool:
-        return self.runtime is not None and self._control is not None \
-            and not self._control.done()
+        return self.procedure is not None and self.procedure.running
 
     @property
     def state(self) -> str:
@@ -307,7 +275,7 @@ class SessionController:
 
     async def _fire(self, trigger: str, what: str | None = None) -> Reply:
         rt = self.runtime
-        refusal = await self.gate.submit(lambda: rt.command(trigger))
+        refusal = await self.procedure.command(trigger)
         if refusal is not None:
             return Reply("refused", _refusal_text(refusal, what))
         return Reply("ok", f"{what or trigger}: state {rt.state}")
@@ -356,7 +324,7 @@ class SessionController:
         def release() -> None:
             world.pedal = False
 
-        self.gate.call_after(3, release)
+        self.procedure.gate.call_after(3, release)
         return [Reply("ok", f"pedal pressed (state {self.state})")]
 
     async def _cmd_drag(self, cmd: Command) -> list[Reply]:
@@ -375,10 +343,10 @@ class SessionController:
 
         async def act():
             if await rt.treatment.may_trigger("align"):
-                rt.cfg = dataclasses.replace(rt.cfg, plan=align_plan(rt.cfg.plan, spec))
+                rt.configure(plan=align_plan(rt.cfg.plan, spec))
             return await rt.command("align")
 
-        refusal = await self.gate.submit(act)
+        refusal = await self.procedure.call(act)
         if refusal is not None:
             return [Reply("refused", str(refusal))]
         await self._end_activity("align")
@@ -423,7 +391,7 @@ class SessionController:
                     return None
                 return await rt.command(trigger)     # refused: the machine says why
 
-            refusal = await self.gate.submit(check)
+            refusal = await self.procedure.call(check)
             if refusal is not None:
                 return [Reply("refused", str(refusal))]
         await self._end_activity(name)
@@ -493,7 +461,7 @@ class SessionController:
                 rt.treatment.passes_left = 0     # the operator ends the treatment
             return refusal
 
-        refusal = await self.gate.submit(act)
+        refusal = await self.procedure.call(act)
         if refusal is not None:
             return [Reply("refused", str(refusal))]
         await self._end_activity("retract")
@@ -514,16 +482,7 @@ class SessionController:
         if not self.connected:
             return Reply("info", "estop: not connected, nothing moves")
         rt = self.runtime
-
-        async def act():
-            estop = getattr(rt, "estop", None)    # Runtime.estop: devices stopped at once
-            if estop is not None:
-                await estop(ESTOP_CAUSE)
-            else:                                  # the machine's fault: stopped next tick
-                await rt.command("fault")
-                rt.treatment.fault_causes[-1] = ESTOP_CAUSE
-
-        await self.gate.submit(act)
+        await self.procedure.estop(ESTOP_CAUSE)
         await self._end_activity("estop")
         return Reply("ok", f"EMERGENCY STOP: state {rt.state}; arm and file stopped; "
                            "'reset' to leave fault")
@@ -545,22 +504,16 @@ class SessionController:
 
     # ------------------------------------------------------------------ connect / loop
     async def connect(self) -> None:
-        """Open the devices, build the runtime, start the control task."""
+        """Open the devices, build the procedure, start its control task."""
         p = self.protocol
         if self._stack is not None:            # a previous connection whose control task died
             await self._stack.aclose()
             self._stack = None
-        gate = self.gate = TickGate()
         if self.devices_cfg is None:
-            def gated(step, ts):
-                self.clock = {"realtime": lambda: LockStepClock(step, ts, paced=True),
-                              "lockstep": lambda: LockStepClock(step, ts),
-                              "stepped": lambda: SteppedClock(step, gate, ts)}[self.opt.clock]()
-                return GatedClock(self.clock, gate)
-
-            h = SimHarness(world_config(p), runtime_config(p), calibrated=self.opt.calibrated,
-                           sink=self._row, clock=gated)
-            self.harness, self.world, rt = h, h.world, h.runtime
+            proc = Procedure.simulated(
+                world_config(p), runtime_config(p), calibrated=self.opt.calibrated,
+                time=SIM_TIME[self.opt.clock], drive=False, sink=self._row,
+                event_sink=self._event)
         else:
             stack = contextlib.AsyncExitStack()
             try:
@@ -569,49 +522,27 @@ class SessionController:
                 await stack.aclose()
                 raise
             self._stack = stack
-            self.clock = RealTimeClock(1.0 / p.control.rate_hz)
-            rt = hardware_runtime(d, runtime_config(p), clock=GatedClock(self.clock, gate),
-                                  sink=self._row)
-        rt.event_sink = self._event
-        self.runtime = rt
+            proc = Procedure.over(d, runtime_config(p), sink=self._row, event_sink=self._event)
+        proc.on_stopped = self._control_stopped
+        self.procedure, self.world, self.runtime = proc, proc.world, proc.runtime
         self.control_error = None
-        gate.open(rt)
         self._rate = (time.perf_counter(), 0)
-        self._control = asyncio.create_task(self._control_loop(), name="dentibot-control")
+        proc.start()
         log.info("session.connected", source=self.source)
 
-    async def _control_loop(self) -> None:
-        rt = self.runtime
-        why = "the control task stopped"
-        try:
-            await rt.run()
-        except Exception as exc:  # noqa: BLE001 - reported, devices stopped, session goes on
-            why = f"the control task died: {type(exc).__name__}: {exc}"
-            self.control_error = why
-            log.error("session.control_died", error=str(exc))
-            self._post("error", why + "; file and arm stopped")
-            await self._stop_devices()
-        finally:
-            self.gate.close(why)
-
-    async def _stop_devices(self) -> None:
-        for dev in (self.runtime.dev.motor, self.runtime.dev.arm):
-            try:
-                await dev.stop()
-            except Exception as exc:  # noqa: BLE001 - stop the other device too
-                log.warning("session: device stop failed", error=str(exc))
+    def _control_stopped(self, error: str | None) -> None:
+        if error is not None:
+            self.control_error = error
+            self._post("error", error + "; file and arm stopped")
 
     async def advance(self, seconds: float | None = None, *, ticks: int | None = None,
                       until=None) -> None:
         """Stepped clock only: let ``seconds`` (or ``ticks``) of simulated time pass, or
         until ``until(runtime)`` (at most ``seconds``), and return when they have."""
-        if not isinstance(self.clock, SteppedClock):
+        if self.opt.clock != "stepped" or self.procedure is None:
             raise DentibotError("advance() needs the stepped clock (SessionOptions(clock="
                                 "'stepped'))")
-        n = ticks if ticks is not None else max(1, round(seconds / self.runtime.ts))
-        fut = self.gate.wait(until, n, on_done=self.clock.hold)   # exact: held in that tick
-        self.clock.grant(n)
-        await fut
+        await self.procedure.run_for(seconds, ticks=ticks, until=until, drive=True)
 
     # ------------------------------------------------------------------ sinks
     def _row(self, row: dict) -> None:
@@ -702,10 +633,7 @@ class SessionController:
         self._busy = "a safe stop"
         try:
             await self._end_activity("stop safely")
-            self.runtime.treatment.passes_left = 0
-            await _LiveSteps(self).safe_stop()
-        except GateClosed as exc:
-            return Reply("error", f"stop safely: control task stopped ({exc})")
+            await self.procedure.safe_stop()
         finally:
             self._busy = None
         return Reply("ok", f"stopped safely: state {self.state}")
@@ -718,25 +646,18 @@ class SessionController:
 
     async def _shutdown(self) -> Reply:
         parts = []
-        if self.runtime is not None:
-            rt = self.runtime
-            if isinstance(self.clock, SteppedClock):
-                self.clock.release()          # the safe stop needs its ticks
+        proc = self.procedure
+        if proc is not None:
+            rt = proc.runtime
+            if proc.held:
+                proc.clock.release()          # the safe stop needs its ticks
             self._busy = "quitting"
             await self._end_activity("quit")
-            if self.connected:
-                rt.treatment.passes_left = 0
-                moving = rt.state not in ("idle", "done", "fault")
-                try:
-                    await _LiveSteps(self).safe_stop()
-                except GateClosed:
-                    pass
-                if moving:
-                    parts.append(f"stopped safely (state {rt.state})")
-                rt.request_stop()
-                await self._control
-            else:
-                await self._stop_devices()
+            moving = rt.state not in ("idle", "done", "fault")
+            await proc.safe_stop()
+            if moving and proc.error is None:
+                parts.append(f"stopped safely (state {rt.state})")
+            await proc.stop()
         if self.recorder is not None:
             parts.append((await self.record_stop(reason="session ended")).text)
         if self._stack is not None:

@@ -49,6 +49,22 @@ def file_command(mode: Mode, drilling_rpm: float, align_rpm: float) -> tuple:
     return ("stop",)
 
 
+async def send_file_command(motor, mode: Mode, cfg, current: tuple | None) -> tuple:
+    """Tell the handpiece what ``mode`` wants (:func:`file_command`), unless it already does
+    (a reversal is sent every time); returns the command now in force."""
+    hp = cfg.handpiece
+    cmd = file_command(mode, hp.drilling_rpm, cfg.plan.align_rpm)
+    if cmd == ("reverse",):
+        await motor.move_relative(-hp.reversal_deg)
+    elif cmd == current:
+        return cmd
+    elif cmd[0] == "vel" and cmd[1] != 0.0:
+        await motor.set_velocity(cmd[1])
+    else:
+        await motor.stop()
+    return cmd
+
+
 _DRILL = {"arm": "admittance", "admittance": "self_alignment", "ref": "B"}
 
 MODES: dict[str, Mode] = {

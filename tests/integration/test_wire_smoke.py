@@ -9,12 +9,10 @@ import numpy as np
 import pytest
 import structlog
 
+from dentibot.app.procedure import Procedure
+from dentibot.app.simulated import serve_wire, tool_geometry_of, true_gravity_model
 from dentibot.io.devices import open_devices
-from dentibot.runtime.clock import RealTimeClock
 from dentibot.runtime.config import RuntimeConfig, Thresholds
-from dentibot.runtime.control_task import Devices, Runtime
-from dentibot.app.simulated import SimHarness, tool_geometry_of, true_gravity_model
-from dentibot.sim.serve import ServePorts, VirtualDentiBot
 from dentibot.sim.world import World, WorldConfig
 
 HAND_N = (1.0, 0.0, 0.0)
@@ -28,34 +26,33 @@ def _quiet():
     structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
 
 
-async def _drag(rt: Runtime, world: World) -> np.ndarray:
+async def _drag(proc: Procedure, world: World) -> np.ndarray:
     """Drag mode, a 1 N hand push for SECONDS; returns the tip displacement (mm, {0})."""
-    assert await rt.command("drag") is None
-    await rt.run(max_ticks=5)
-    start = np.array(world.tip_0)
-    world.hand_force_0 = HAND_N
-    await rt.run(max_ticks=round(SECONDS / 0.002))
-    world.hand_force_0 = (0.0, 0.0, 0.0)
-    await rt.command("stop")
-    await rt.run(max_ticks=5)
+    async with proc:
+        assert await proc.command("drag") is None
+        await proc.run_for(ticks=5)
+        start = np.array(world.tip_0)
+        world.hand_force_0 = HAND_N
+        await proc.run_for(ticks=round(SECONDS / 0.002))
+        world.hand_force_0 = (0.0, 0.0, 0.0)
+        await proc.command("stop")
+        await proc.run_for(ticks=5)
     return np.array(world.tip_0) - start
 
 
 @pytest.mark.timeout(60)
 async def test_same_motion_in_process_and_over_the_wire():
-    h = SimHarness(WorldConfig(seed=21), RuntimeConfig(thresholds=LOOSE))
-    local = await _drag(h.runtime, h.world)
+    h = Procedure.simulated(WorldConfig(seed=21), RuntimeConfig(thresholds=LOOSE))
+    local = await _drag(h, h.world)
     # Table 4.3 dragging: k/b = 18.75 mm/s per N at the grip
     assert local[0] == pytest.approx(18.75 * SECONDS, rel=0.05)
 
     world = World(WorldConfig(seed=21))
-    ports = ServePorts(meca_port=0, netft_port=0, netft_http_port=0, modbus_port=0, can_port=0)
-    async with VirtualDentiBot(world, ports) as bot, open_devices(bot.devices_config()) as d:
-        rt = Runtime(Devices(d.arm, d.ft, d.motor, d.aux),
-                     RuntimeConfig(tool=tool_geometry_of(world), thresholds=LOOSE),
-                     RealTimeClock(0.002), gravity=true_gravity_model(world))
-        wire = await _drag(rt, world)
-        assert rt.state == "idle", rt.treatment.fault_causes
+    async with serve_wire(world) as bot, open_devices(bot.devices_config()) as d:
+        proc = Procedure.over(d, RuntimeConfig(tool=tool_geometry_of(world), thresholds=LOOSE),
+                              gravity=true_gravity_model(world))
+        wire = await _drag(proc, world)
+        assert proc.runtime.state == "idle", proc.runtime.treatment.fault_causes
         assert d.ft.lost == 0
     # same motion within the jitter of real time (a few ticks of 1.2 s) and servo lag
     np.testing.assert_allclose(wire, local, atol=0.08 * abs(local[0]))

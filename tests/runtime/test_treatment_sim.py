@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from sim_runs import finished, harness
+from sim_runs import finished, harness, procedure
 
 from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
 from dentibot.runtime.config import TreatmentPlan
@@ -24,8 +24,8 @@ CANALS = {
 async def test_automated_algorithm_prepares_the_canal_to_working_length(name):
     h, rows = harness(seed=3, canal=CANALS[name])
     rt = h.runtime
-    assert await rt.command("drill") is None
-    await rt.run(until=finished, max_ticks=60_000)
+    assert await h.command("drill") is None
+    await h.run_for(until=finished, ticks=60_000)
     assert rt.state == "done", rt.treatment.fault_causes
     assert not any(r["fractured"] for r in rows)
     peak = max(r["file_torque_mnm"] for r in rows)
@@ -43,14 +43,14 @@ async def test_automated_algorithm_prepares_the_canal_to_working_length(name):
 async def test_a_torque_spike_triggers_reversal_within_one_tick():
     h, rows = harness(seed=4)
     rt = h.runtime
-    await rt.command("drill")
+    await h.command("drill")
     # drill until the file is well engaged, then bind it: debris packs the flutes
-    await rt.run(until=lambda r: r.last_row and r.last_row["true_depth_mm"] > 6.0,
-                 max_ticks=20_000)
+    await h.run_for(until=lambda r: r.last_row and r.last_row["true_depth_mm"] > 6.0,
+                 ticks=20_000)
     assert rt.state == "treating.drilling.feeding"
     k0 = rt.ticks
     h.world.canal.debris_mm3 += 1.0          # +30 mNm of resistance (torque_mnm_per_mm3)
-    await rt.run(max_ticks=200)
+    await h.run_for(ticks=200)
     after = rows[k0:]
     limit = rt.cfg.plan.strategy.feedrate.reversal_threshold_n
     first = next(i for i, r in enumerate(after)
@@ -75,8 +75,8 @@ async def test_patient_movement_stops_the_file_tracks_and_resumes():
     jerk = Jerk(t0=6.0)
     h, rows = harness(seed=5, motion=jerk)
     rt = h.runtime
-    await rt.command("drill")
-    await rt.run(max_ticks=int(9.0 / 0.002))
+    await h.command("drill")
+    await h.run_for(ticks=int(9.0 / 0.002))
     fnorm = [float(np.linalg.norm(r["wrench_h"])) for r in rows]
     first_over = next(i for i, f in enumerate(fnorm)
                       if f > 1.5 and rows[i]["t"] >= jerk.t0)
@@ -101,23 +101,23 @@ async def test_patient_movement_stops_the_file_tracks_and_resumes():
 async def test_emergency_stop_halts_arm_and_file_in_one_tick_and_latches():
     h, rows = harness(seed=6)
     rt, w = h.runtime, h.world
-    await rt.command("drill")
-    await rt.run(max_ticks=2000)
+    await h.command("drill")
+    await h.run_for(ticks=2000)
     assert rt.state == "treating.drilling.feeding" and w.handpiece.cmd_rpm == 60.0
     w.estop = True
-    await rt.run(max_ticks=1)
+    await h.run_for(ticks=1)
     assert rows[-1]["state"] == "fault"
     assert w.handpiece.cmd_rpm == 0.0 and w.handpiece.mode == "vel"
     assert all(v == 0.0 for v in w.arm.vel_cmd) or not w.arm.moving
     assert any("emergency stop" in c for c in rt.treatment.fault_causes)
-    await rt.run(max_ticks=500)
+    await h.run_for(ticks=500)
     assert rt.state == "fault" and max(abs(x) for x in w.arm.qdot) < 1e-3
-    refusal = await rt.command("reset")
+    refusal = await h.command("reset")
     assert refusal is not None and "emergency stop" in refusal.reason
     w.estop = False
-    await rt.run(max_ticks=5)
-    assert await rt.command("reset") is None
-    await rt.run(max_ticks=500)
+    await h.run_for(ticks=5)
+    assert await h.command("reset") is None
+    await h.run_for(ticks=500)
     # nothing restarts by itself
     assert rt.state == "idle" and w.handpiece.cmd_rpm == 0.0
     assert max(abs(x) for x in w.arm.qdot) < 1e-3
@@ -131,23 +131,23 @@ async def test_same_seed_same_run():
     runs = []
     for _ in range(2):
         h, rows = harness(seed=11, motion="head")
-        await h.runtime.command("drill")
-        await h.runtime.run(max_ticks=3000)
+        await h.command("drill")
+        await h.run_for(ticks=3000)
         runs.append(strip(rows))
     assert runs[0] == runs[1]
     h, rows = harness(seed=12, motion="head")
-    await h.runtime.command("drill")
-    await h.runtime.run(max_ticks=3000)
+    await h.command("drill")
+    await h.run_for(ticks=3000)
     assert strip(rows) != runs[0]
 
 
 async def test_load_calibration_routine_identifies_the_handpiece():
     h, rows = harness(seed=7, calibrated=False)
     rt = h.runtime
-    refusal = await rt.command("drill")
+    refusal = await h.command("drill")
     assert refusal is not None and "calibrat" in refusal.reason
-    await rt.command("calibrate_load")
-    await rt.run(until=lambda r: r.state != "calibrating.load", max_ticks=20_000)
+    await h.command("calibrate_load")
+    await h.run_for(until=lambda r: r.state != "calibrating.load", ticks=20_000)
     assert rt.state == "idle", rt.treatment.fault_causes
     g = rt.gravity
     # the simulated handpiece: 139 g, sensor turned 15 deg, centroid (3, -2, 45) mm
@@ -155,9 +155,9 @@ async def test_load_calibration_routine_identifies_the_handpiece():
     assert g.mount_angle_deg == pytest.approx(15.0, abs=1.0)
     np.testing.assert_allclose(g.centroid_mm, (3.0, -2.0, 45.0), atol=2.0)
     # with it, the compensated wrench at rest is near zero (sensor noise ~0.02 N)
-    await rt.run(max_ticks=100)
+    await h.run_for(ticks=100)
     assert math.hypot(*rows[-1]["wrench_h"][:3]) < 0.1
-    assert await rt.command("drill") is None
+    assert await h.command("drill") is None
 
 
 async def test_sectioned_reversal_strategy_reaches_a_short_working_length():
@@ -165,8 +165,8 @@ async def test_sectioned_reversal_strategy_reaches_a_short_working_length():
                          strategy=StrategyParams(name="reversal", section_mm=3.0, min_rounds=3))
     h, rows = harness(seed=8, canal=CanalParams(working_length_mm=6.0), plan=plan)
     rt = h.runtime
-    await rt.command("drill")
-    await rt.run(until=finished, max_ticks=60_000)
+    await h.command("drill")
+    await h.run_for(until=finished, ticks=60_000)
     assert rt.state == "done", rt.treatment.fault_causes
     finished_sections = sum("section_finished" in r["events"] for r in rows)
     assert finished_sections == 1      # two sections of 3 mm: one hand-over, then WL
@@ -179,11 +179,11 @@ async def test_dragging_moves_the_grip_at_k_over_b_per_newton():
     k/b = 1500/80 = 18.75 mm/s per N, no moment about A, so the grip translates."""
     h, rows = harness(seed=9)
     rt, w = h.runtime, h.world
-    assert await rt.command("drag") is None
-    await rt.run(max_ticks=10)
+    assert await h.command("drag") is None
+    await h.run_for(ticks=10)
     w.hand_force_0 = (1.0, 0.0, 0.0)
     start = np.array(rows[-1]["tool_pose"][:3])
-    await rt.run(max_ticks=500)                       # 1 s
+    await h.run_for(ticks=500)                       # 1 s
     w.hand_force_0 = (0.0, 0.0, 0.0)
     moved = np.array(rows[-1]["tool_pose"][:3]) - start
     # the tip moves with the grip (pure translation): 18.75 mm minus the servo lag (8 ms)
@@ -206,8 +206,8 @@ async def test_the_depth_limit_retracts_even_if_the_strategy_would_push_on():
                       plan=TreatmentPlan(working_length_mm=6.0, orifice_gap_mm=2.0))
     rt = h.runtime
     rt.ctx.strategy = PushForever(StrategyParams(), 6.0, rt.ts)
-    await rt.command("drill")
-    await rt.run(until=lambda r: r.state != "treating.drilling.feeding", max_ticks=30_000)
+    await h.command("drill")
+    await h.run_for(until=lambda r: r.state != "treating.drilling.feeding", ticks=30_000)
     assert rt.state == "treating.retracting"
     assert any("depth_limit" in r["events"] for r in rows)
     assert max(r["depth_mm"] for r in rows) <= 6.5 + 0.05      # one tick of feed past it
@@ -231,26 +231,25 @@ async def test_tcp_calibration_by_pedal_presses_finds_the_true_tool_tip():
     from scipy.spatial.transform import Rotation
 
     from dentibot.runtime.config import RuntimeConfig, ToolGeometry
-    from dentibot.app.simulated import SimHarness
     from dentibot.sim.world import WorldConfig
 
-    h = SimHarness(WorldConfig(seed=12), RuntimeConfig(tool=ToolGeometry(tip_6_mm=(0, 0, 80.0)),
-                                                      tcp_points=5))
+    h = procedure(WorldConfig(seed=12),
+                            RuntimeConfig(tool=ToolGeometry(tip_6_mm=(0, 0, 80.0)), tcp_points=5))
     rt, w = h.runtime, h.world
     assert rt.cfg.tool.tip_6_mm == (0, 0, 80.0)
     T0 = w.kin.fk_tool(w.arm.q)
     point = T0[:3, 3] + np.array([0.0, 0.0, -5.0])
-    assert await rt.command("calibrate_tcp") is None
+    assert await h.command("calibrate_tcp") is None
     q = np.array(w.arm.q)
     for rx, ry in ((0, 0), (15, 0), (-15, 0), (0, 15), (0, -15)):
         R = T0[:3, :3] @ Rotation.from_euler("xy", [rx, ry], degrees=True).as_matrix()
         q = _ik_tip_at(w, point, R, q)
         w.teleport_arm(q)
-        await rt.run(max_ticks=3)
+        await h.run_for(ticks=3)
         w.pedal = True
-        await rt.run(max_ticks=2)
+        await h.run_for(ticks=2)
         w.pedal = False
-        await rt.run(max_ticks=2)
+        await h.run_for(ticks=2)
     assert rt.state == "idle", rt.events_log[-5:]
     np.testing.assert_allclose(rt.cfg.tool.tip_6_mm, (0.0, 0.0, 90.0), atol=0.05)
     np.testing.assert_allclose(rt.kin.fk_tool(w.arm.q)[:3, 3], point, atol=0.05)
@@ -265,8 +264,8 @@ async def test_alignment_left_running_stops_at_the_depth_limit():
     h, rows = harness(seed=13, canal=CanalParams(working_length_mm=8.0),
                       plan=TreatmentPlan(working_length_mm=6.0, orifice_gap_mm=2.0))
     rt = h.runtime
-    await rt.command("align")
-    await rt.run(until=lambda r: r.state == "fault", max_ticks=20_000)
+    await h.command("align")
+    await h.run_for(until=lambda r: r.state == "fault", ticks=20_000)
     assert rt.state == "fault" and "depth_limit" in rt.treatment.fault_causes[0]
     assert max(r["depth_mm"] for r in rows) <= 7.0 + 0.05
 
@@ -276,16 +275,16 @@ async def test_a_file_bound_while_retracting_is_withdrawn_without_turning():
     stops turning and is withdrawn straight, instead of being left stopped in the canal."""
     h, rows = harness(seed=6)
     rt = h.runtime
-    await rt.command("drill")
-    await rt.run(until=lambda r: r.last_row and r.last_row["true_depth_mm"] > 6.0,
-                 max_ticks=20_000)
-    assert await rt.command("retract") is None
-    await rt.run(max_ticks=50)
+    await h.command("drill")
+    await h.run_for(until=lambda r: r.last_row and r.last_row["true_depth_mm"] > 6.0,
+                 ticks=20_000)
+    assert await h.command("retract") is None
+    await h.run_for(ticks=50)
     assert rt.state == "treating.retracting" and h.world.handpiece.omega_rpm > 50.0
     k0 = rt.ticks
     limit = rt.cfg.thresholds.torque_limit_mnm
     h.world.canal.debris_mm3 += 2.0          # +60 mNm (torque_mnm_per_mm3): bound
-    await rt.run(until=lambda r: r.state != "treating.retracting", max_ticks=10_000)
+    await h.run_for(until=lambda r: r.state != "treating.retracting", ticks=10_000)
     after = rows[k0:]
     first = next(i for i, r in enumerate(after) if "file_stopped" in r["events"])
     assert after[first - 1]["file_torque_mnm"] <= limit < after[first]["file_torque_mnm"]
@@ -317,8 +316,8 @@ async def test_the_runtime_runs_the_tick_chain_of_control_tick(monkeypatch):
     monkeypatch.setattr(ct, "admittance_command", command)
     h, rows = harness(seed=3)
     rt = h.runtime
-    assert await rt.command("align") is None
-    await rt.run(max_ticks=100)
+    assert await h.command("align") is None
+    await h.run_for(ticks=100)
     # every tick, plus once more on entering self-alignment (its reference point B is set
     # in that tick, and the wrench is moved to it again)
     assert calls["wrench"] == 101

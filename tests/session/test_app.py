@@ -193,7 +193,7 @@ async def test_quit_while_drilling_withdraws_the_file_first(stepped, tmp_path):
                 break
     assert c.closed and not c.connected
     world = c.world
-    tip_depth = c.harness.truth()["true_depth_mm"]
+    tip_depth = c.runtime.truth()["true_depth_mm"]
     assert tip_depth <= c.runtime.cfg.plan.retract_to_mm + 0.05      # out of the canal
     # file and arm were told to stop: left alone, the simulated devices come to rest
     assert world.handpiece.mode == "vel" and world.handpiece.cmd_rpm == 0.0

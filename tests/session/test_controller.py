@@ -10,7 +10,8 @@ import pytest
 
 from dentibot.control.admittance import DRAGGING
 from dentibot.protocol.loader import parse_protocol
-from dentibot.runtime.gate import GateClosed, SteppedClock, TickGate
+from dentibot.runtime.clock import LockStepClock
+from dentibot.runtime.gate import GateClosed, TickGate
 from dentibot.session.controller import SessionController, SessionOptions
 from dentibot.telemetry.reader import read_recording
 from dentibot.telemetry.summary import summarize_file
@@ -26,11 +27,14 @@ async def say(c: SessionController, line: str):
 async def test_gate_runs_actions_between_ticks_in_order_and_counts_waits_exactly():
     gate = TickGate()
     steps = []
-    clock = SteppedClock(lambda: steps.append(len(steps)), gate)
+    clock = LockStepClock(lambda: steps.append(len(steps)), held=True)
+    clock.serve = gate.run_actions
+    gate.on_submit = clock.wake
     gate.open(runtime=None)
     ran = []
 
     async def loop():
+        await clock.wait_first()
         for _ in range(50):          # what Runtime.run does: tick, then wait for the next
             await gate.between()
             await clock.wait_next()
@@ -40,6 +44,8 @@ async def test_gate_runs_actions_between_ticks_in_order_and_counts_waits_exactly
     a = gate.submit(lambda: _record(ran, "a"))
     b = gate.submit(lambda: _record(ran, "b"))
     assert await a == "a" and await b == "b" and ran == ["a", "b"] and steps == []
+    clock.grant(1)                         # the first tick takes a grant, with no world step
+    assert await gate.submit(lambda: "after the first tick") and steps == []
     w = gate.wait(max_ticks=7, on_done=clock.hold)
     clock.grant(100)
     await w
@@ -64,7 +70,7 @@ async def test_the_session_clock_for_the_simulator_in_real_time_is_a_realtime_cl
     c = SessionController(SessionOptions(clock="realtime", calibrated=True, record_dir=tmp_path))
     assert (await say(c, "connect")).kind == "ok"
     try:
-        assert c.clock.realtime and c.runtime.clock.realtime      # paced: real-time deadlines
+        assert c.runtime.clock.realtime                   # paced: real-time deadlines
         assert c.runtime.stats.deadlines                  # lateness and overruns counted
         w0 = c.world.steps
         for _ in range(500):
