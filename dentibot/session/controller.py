@@ -239,11 +239,12 @@ class SessionController:
     def _post(self, kind: str, text: str) -> None:
         self.messages.append((kind, text))
 
-    def _name_step(self, what: str) -> None:
-        """Telemetry rows from now on belong to session step ``"<n>:<what>"`` (the summary and
-        ``dentibot report`` group by it, as for a protocol's steps)."""
+    async def _name_step(self, what: str) -> None:
+        """Telemetry rows from the next tick belong to session step ``"<n>:<what>"`` (the
+        summary and ``dentibot report`` group by it, as for a protocol's steps)."""
         self._steps_named += 1
-        self.runtime.step_name = f"{self._steps_named}:{what.replace(' ', '_')}"
+        rt, name = self.runtime, f"{self._steps_named}:{what.replace(' ', '_')}"
+        await self.procedure.call(lambda: setattr(rt, "step_name", name))
 
     # ------------------------------------------------------------------ commands
     async def execute(self, line: str) -> list[Reply]:
@@ -304,7 +305,7 @@ class SessionController:
         if reply.kind != "ok":
             return [reply]
         await self._end_activity(f"calibrate {cmd.sub}")
-        self._name_step(trigger)
+        await self._name_step(trigger)
         if cmd.sub == "load":
             how = "the arm visits the calibration poses, then back to idle"
         else:
@@ -334,7 +335,7 @@ class SessionController:
         reply = await self._fire("drag")
         if reply.kind == "ok":
             await self._end_activity("drag")
-            self._name_step("drag")
+            await self._name_step("drag")
         return [reply]
 
     async def _cmd_align(self, cmd: Command) -> list[Reply]:
@@ -350,7 +351,7 @@ class SessionController:
         if refusal is not None:
             return [Reply("refused", str(refusal))]
         await self._end_activity("align")
-        self._name_step("align")
+        await self._name_step("align")
         p = rt.cfg.plan
         return [Reply("ok", f"align: state {rt.state}; fz {p.align_fz_n} N, file "
                             f"{p.align_rpm} rpm" + (f", Table 6.4 config {spec.config}"
@@ -396,7 +397,7 @@ class SessionController:
                 return [Reply("refused", str(refusal))]
         await self._end_activity(name)
         steps = _LiveSteps(self)
-        self._name_step(kind)
+        await self._name_step(kind)
         self._activity_name = name
         self._activity_end = ""
         self._activity = task = asyncio.create_task(
