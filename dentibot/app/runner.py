@@ -23,7 +23,8 @@ from dentibot.app.procedure import Procedure
 from dentibot.app.steps import Aborted, StepExecutor
 from dentibot.errors import ConfigError
 from dentibot.io.devices import DevicesConfig, open_devices
-from dentibot.protocol.schema import Protocol
+from dentibot.protocol.loader import ProtocolFileError
+from dentibot.protocol.schema import LIMIT_SHARE_OF_STRENGTH, Protocol
 from dentibot.runtime.config import RuntimeConfig, Thresholds, ToolGeometry, TreatmentPlan
 from dentibot.runtime.control_task import Runtime
 from dentibot.sim.canal import CanalParams, material_params
@@ -77,11 +78,20 @@ def runtime_config(p: Protocol) -> RuntimeConfig:
 
 
 def recording_path(p: Protocol, override: str | Path | None = None) -> Path | None:
+    """Where the run records: ``override`` (``--out``), the protocol's ``recording.path``, or
+    by default the first free name of ``runs/<name>-<seed>.mcap``, ``runs/<name>-<seed>-2.mcap``
+    ... (a default never replaces an earlier run's recording)."""
     if override is not None:
         return Path(override)
     if not p.recording.enabled:
         return None
-    return Path(p.recording.path or f"runs/{p.name}-{p.seed}.mcap")
+    if p.recording.path:
+        return Path(p.recording.path)
+    path, n = Path(f"runs/{p.name}-{p.seed}.mcap"), 1
+    while path.exists():
+        n += 1
+        path = Path(f"runs/{p.name}-{p.seed}-{n}.mcap")
+    return path
 
 
 def step_duration_s(p: Protocol, step_name: str) -> float | None:
@@ -116,18 +126,34 @@ class ProtocolRunner:
     (step, state, t, depth, working length, file torque and its limit, force). ``tap(row)``
     sees every telemetry row; with ``live_summary=False`` the rows feed only the tap and the
     recording, not the live summary (the summary then carries the status and its reason).
+    ``limit_share``: the largest share of the file's strength the protocol's hard torque limit
+    may be (90 %; a study of strategies without the runtime's net on the built-in simulator may
+    go up to 1).
     """
 
     def __init__(self, protocol: Protocol, *, recording: str | Path | None = None,
                  progress: Callable[[dict], None] | None = None,
-                 progress_every: int = 250, overwrite: bool = True,
+                 progress_every: int = 250, overwrite: bool = False,
                  no_record: bool = False, devices: DevicesConfig | None = None,
                  tap: Callable[[dict], None] | None = None,
-                 live_summary: bool = True) -> None:
+                 live_summary: bool = True,
+                 limit_share: float = LIMIT_SHARE_OF_STRENGTH) -> None:
+        if not 0.0 < limit_share <= (1.0 if devices is None else LIMIT_SHARE_OF_STRENGTH):
+            raise ConfigError("limit_share", limit_share,
+                              f"0 < share <= {LIMIT_SHARE_OF_STRENGTH} of the file's strength "
+                              "(up to 1 only on the built-in simulator)")
+        problems = protocol.cross_checks(limit_share)
+        if problems:
+            raise ProtocolFileError("<protocol>", [(None, ".".join(map(str, loc)), text)
+                                                   for loc, text in problems])
         self.p = protocol
         self.progress = progress
         self.progress_every = progress_every
         self.path = None if no_record else recording_path(protocol, recording)
+        if self.path is not None and self.path.exists() and not overwrite:
+            raise ConfigError("recording.path", str(self.path),
+                              "a new file: it exists, and a recording is never replaced "
+                              "silently (choose another path, or --force to replace it)")
         self.summary: RunSummary | None = None
         self.acc = SummaryAccumulator(rate_hz=protocol.control.rate_hz)
         self._tap = tap

@@ -57,7 +57,7 @@ def _run(args: argparse.Namespace) -> int:
 
     runner = ProtocolRunner(protocol, recording=None if args.out is None else args.out,
                             progress=on_progress, no_record=args.no_record,
-                            devices=devices)
+                            devices=devices, overwrite=args.force)
     try:
         with progress:
             result = asyncio.run(runner.run(handle_sigint=True))
@@ -87,6 +87,8 @@ def add_parser(sub) -> None:
                      help="print the result as one JSON object (progress goes to stderr)")
     run.add_argument("--out", help="recording file (MCAP); default from the protocol")
     run.add_argument("--no-record", action="store_true", help="do not write a recording")
+    run.add_argument("--force", action="store_true",
+                     help="replace the recording file if it exists (refused otherwise)")
     run.add_argument("--devices", help="device configuration YAML (wire simulators of "
                      "'dentibot sim serve' or hardware); default: the built-in simulator")
     run.add_argument("--quiet", action="store_true", help="no progress display")

@@ -10,7 +10,9 @@ import argparse
 import asyncio
 import contextlib
 import gc
+from pathlib import Path
 
+from dentibot.io.devices import devices_yaml
 from dentibot.sim.serve import ServePorts, VirtualDentiBot
 from dentibot.sim.world import WorldConfig
 
@@ -29,6 +31,10 @@ async def _serve(args: argparse.Namespace) -> None:
               f"tcp/{p['netft_http_port']}), Modbus tcp/{p['modbus_port']}, EPOS4 node "
               f"{args.node_id} via socketcand tcp/{p['can_port']} channel {p['can_channel']}",
               flush=True)
+        if args.write_devices:
+            Path(args.write_devices).write_text(devices_yaml(bot.devices_config()),
+                                                encoding="utf-8")
+            print(f"device configuration for these ports: {args.write_devices}", flush=True)
         if args.duration is not None:
             await asyncio.sleep(args.duration)
         else:
@@ -58,4 +64,7 @@ def add_parser(sub) -> None:
     serve.add_argument("--motion", default="static", choices=["static", "square", "head"],
                        help="patient / phantom motion")
     serve.add_argument("--duration", type=float, help="stop after this many seconds")
+    serve.add_argument("--write-devices", metavar="FILE",
+                       help="write the device configuration for the served ports (the file "
+                            "'dentibot run --devices' and 'dentibot session --devices' read)")
     serve.set_defaults(func=cmd_serve)

@@ -80,7 +80,8 @@ def run_all(fn: Callable[[S], R], specs: Sequence[S], workers: int = 1,
 
 def run_protocol(protocol: Protocol, tap: Callable[[dict, ProtocolRunner], None],
                  prepare: Callable[[ProtocolRunner], None] | None = None,
-                 feed_summary: bool = False) -> tuple[RunResult, ProtocolRunner]:
+                 feed_summary: bool = False,
+                 limit_share: float | None = None) -> tuple[RunResult, ProtocolRunner]:
     """Run ``protocol`` on the built-in simulator without a recording; ``tap(row, runner)``
     sees every telemetry row.
 
@@ -88,10 +89,11 @@ def run_protocol(protocol: Protocol, tap: Callable[[dict, ProtocolRunner], None]
     not describe, e.g. when the patient's motion starts). Unless ``feed_summary``, the rows go
     to ``tap`` only, not to the runner's live summary (it would cost about a third of the run
     time): the result's summary then carries the status and its reason, the figures come from
-    the tap.
+    the tap. ``limit_share``: see :class:`~dentibot.app.runner.ProtocolRunner`.
     """
     runner = ProtocolRunner(protocol, no_record=True, tap=lambda row: tap(row, runner),
-                            live_summary=feed_summary)
+                            live_summary=feed_summary,
+                            **({} if limit_share is None else {"limit_share": limit_share}))
     if prepare is not None:
         prepare(runner)
     result = asyncio.run(runner.run())

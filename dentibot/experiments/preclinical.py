@@ -252,7 +252,11 @@ def run_phantom(spec: PreclinicalSpec) -> PhantomRun:
             trace["feeding"].append(row["state"] == "treating.drilling.feeding")
 
     wall = time.perf_counter()
-    result, runner = run_protocol(protocol, tap=tap)
+    # an ablation's hard limit may be the file's strength itself (no runtime net: the
+    # strategy alone protects the file), which only a simulated study may ask for
+    result, runner = run_protocol(
+        protocol, tap=tap,
+        limit_share=torque_limit_of(spec) / protocol.file.torsional_strength_mnm)
     wall = time.perf_counter() - wall
     w = runner.world
     canal = w.canal

@@ -1,7 +1,8 @@
 """Device configuration (YAML) and start-up of the real drivers.
 
-A user with the hardware changes only addresses here; a user without it points the same
-drivers at ``dentibot sim serve`` (the defaults of :func:`loopback_config`). Example::
+A user with the hardware writes the addresses here; a user without it points the same
+drivers at ``dentibot sim serve`` (the defaults of :func:`loopback_config`). No address is
+assumed: an empty file, or a device without its host, is an error. Example::
 
     arm:       {host: 192.168.0.100, control_port: 10000, monitor_port: 10001}
     ft:        {host: 192.168.1.1, port: 49152, http_port: 80}
@@ -20,31 +21,37 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import Field
 
-from dentibot.errors import ConfigError
 from dentibot.io.aux_modbus import AuxModbusDriver
-from dentibot.io.aux_registers import WATCHDOG_MAX_MS
 from dentibot.io.epos4 import Epos4Driver
 from dentibot.io.meca500 import Meca500Driver
 from dentibot.io.netft import NetFTDriver
+from dentibot.yamlfile import StrictModel, YamlFileError, load
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class DevicesFileError(YamlFileError):
+    """A device configuration file is malformed or invalid."""
+
+    kind = "device configuration"
+
+
+class _Strict(StrictModel):
+    """A section of the device configuration (see :class:`~dentibot.yamlfile.StrictModel`)."""
 
 
 class ArmConfig(_Strict):
-    host: str = "192.168.0.100"
+    host: str = Field(min_length=1, max_length=253, description="the Meca500's address")
     control_port: int = Field(10000, ge=1, le=65535)
     monitor_port: int = Field(10001, ge=1, le=65535)
-    vel_timeout_s: float = Field(0.01, ge=0.001, le=1.0,
-                                 description="SetVelTimeout: the arm's dead-man (s)")
+    vel_timeout_s: float = Field(
+        0.05, ge=0.005, le=0.1,
+        description="SetVelTimeout, the arm's dead-man (s): the arm stops by itself when no "
+                    "velocity command came for this long; at most 50 control periods")
 
 
 class FTConfig(_Strict):
-    host: str = "192.168.1.1"
+    host: str = Field(min_length=1, max_length=253, description="the Net F/T box's address")
     port: int = Field(49152, ge=1, le=65535)
     http_port: int = Field(80, ge=1, le=65535)
     counts_per_force: float | None = Field(None, gt=0)
@@ -52,27 +59,39 @@ class FTConfig(_Strict):
 
 
 class HandpieceConfigIO(_Strict):
-    interface: Literal["socketcand", "socketcan", "virtual", "pcan", "kvaser", "ixxat"] = \
-        "socketcan"
-    channel: str = "can0"
-    host: str = "127.0.0.1"
+    interface: Literal["socketcand", "socketcan", "virtual", "pcan", "kvaser", "ixxat"]
+    channel: str = Field("can0", min_length=1, max_length=64)
+    host: str = Field("127.0.0.1", min_length=1, max_length=253)
     port: int = Field(29536, ge=1, le=65535)
     node_id: int = Field(1, ge=1, le=127)
 
 
 class AuxConfig(_Strict):
-    host: str = "192.168.0.50"
+    host: str = Field(min_length=1, max_length=253, description="the aux I/O's address")
     port: int = Field(502, ge=1, le=65535)
     device_id: int = Field(1, ge=0, le=247)
-    watchdog_ms: int = Field(200, ge=0, le=WATCHDOG_MAX_MS,
-                             description="host watchdog armed on a map 1.1+ device (0 = off)")
+    watchdog_ms: int = Field(
+        200, ge=50, le=1000,
+        description="host watchdog armed on a map 1.1+ device (ms): host-lost is declared "
+                    "after this long without the host's counter; at least 5 poll periods")
 
 
 class DevicesConfig(_Strict):
-    arm: ArmConfig = ArmConfig()
-    ft: FTConfig = FTConfig()
-    handpiece: HandpieceConfigIO = HandpieceConfigIO()
-    aux: AuxConfig | None = AuxConfig()
+    """The devices of a real (or wire-simulated) set-up: every address written out, none
+    assumed. The aux I/O carries the emergency stop: leaving it out needs ``estop_waiver``, a
+    sentence saying why (e.g. a bench with a hardware e-stop in the arm's power)."""
+
+    arm: ArmConfig
+    ft: FTConfig
+    handpiece: HandpieceConfigIO
+    aux: AuxConfig | None = None
+    estop_waiver: str | None = Field(None, min_length=10, max_length=500)
+
+    def cross_checks(self) -> list[tuple[tuple, str]]:
+        if self.aux is None and self.estop_waiver is None:
+            return [(("aux",), "the aux I/O (emergency stop, pedal) is required: configure "
+                               "it, or state why it is left out in estop_waiver")]
+        return []
 
 
 def loopback_config(host: str = "127.0.0.1", meca_port: int = 10000, netft_port: int = 49152,
@@ -90,19 +109,17 @@ def loopback_config(host: str = "127.0.0.1", meca_port: int = 10000, netft_port:
         aux=AuxConfig(host=host, port=modbus_port))
 
 
+def devices_yaml(cfg: DevicesConfig) -> str:
+    """``cfg`` as a device configuration file (what :func:`load_devices_config` reads back)."""
+    import yaml
+
+    return yaml.safe_dump(cfg.model_dump(exclude_none=True), sort_keys=False)
+
+
 def load_devices_config(path: str | Path) -> DevicesConfig:
-    p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text(encoding="utf-8")) or {}
-        return DevicesConfig.model_validate(data)
-    except OSError as exc:
-        raise ConfigError("devices", str(p), "a readable YAML file", exc.strerror) from None
-    except yaml.YAMLError as exc:
-        raise ConfigError("devices", str(p), "valid YAML", str(exc)) from None
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        raise ConfigError("devices." + ".".join(map(str, err["loc"])), err.get("input"),
-                          err["msg"], f"{len(exc.errors())} problem(s) in {p}") from None
+    """Read and validate a device configuration file; raises :class:`DevicesFileError`
+    (file, line, field, value, limit) before anything connects."""
+    return load(path, DevicesConfig, DevicesFileError)
 
 
 @dataclass

@@ -20,21 +20,49 @@ A protocol::
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import AfterValidator, Field, model_validator
 
 from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
+from dentibot.yamlfile import StrictModel
 
-Vec3 = tuple[float, float, float]
+#: A tool point in the flange or handpiece frame (mm): beyond 250 mm it is not a handpiece
+#: on a Meca500 (whose reach is 330 mm) but a unit or sign mistake.
+MAX_TOOL_MM = 250.0
+#: File length that must stay out of the canal at the working length (mm): the shank and the
+#: handpiece head between the reference point and the chuck.
+FILE_CLEARANCE_MM = 2.0
+#: The hard torque limit may be at most this share of the file's torsional strength.
+LIMIT_SHARE_OF_STRENGTH = 0.9
+#: Longest planned procedure (s): the sum of the steps' durations.
+MAX_PROCEDURE_S = 2 * 3600.0
+#: Longest a stream may go without a new sample before it is a fault (s): the arm, the F/T
+#: sensor and the handpiece drive at 500 Hz, the aux I/O polled at 50-100 Hz.
+STALE_MAX_S = {"arm": 0.1, "ft": 0.1, "motor": 0.1, "aux": 0.5}
+
+
+def _plausible_mnm(value: float) -> float:
+    """A file torque below 1 mNm is a unit mistake (N m for mNm), not a setting."""
+    if 0.0 < value < 1.0:
+        raise ValueError(f"{value!r} mNm is implausibly small: was it given in N m? "
+                         f"({value!r} N m = {value * 1000:g} mNm)")
+    return value
+
+
+ToolMm = Annotated[float, Field(ge=-MAX_TOOL_MM, le=MAX_TOOL_MM)]
+ToolVec = tuple[ToolMm, ToolMm, ToolMm]
+HandN = Annotated[float, Field(ge=-20.0, le=20.0)]
+MilliNm = Annotated[float, AfterValidator(_plausible_mnm)]
 
 #: The simulated phantom materials a protocol may name (the simulator's table of their
 #: constants has exactly these names; a test holds the two together).
 MATERIAL_NAMES = ("resin", "acrylic")
 
 
-class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class Strict(StrictModel):
+    """A section of a protocol (see :class:`~dentibot.yamlfile.StrictModel`)."""
 
 
 class ControlSpec(Strict):
@@ -43,11 +71,11 @@ class ControlSpec(Strict):
 
 
 class ToolSpec(Strict):
-    tip_mm: Vec3 = Field((0.0, 0.0, 90.0),
+    tip_mm: ToolVec = Field((0.0, 0.0, 90.0),
                          description="file tip in the flange frame, 6p_H (mm), from TCP calibration")
     sensor_offset_mm: float = Field(10.0, ge=0.0, le=100.0,
                                     description="F/T sensor origin along the flange z (mm)")
-    grip_mm: Vec3 = Field((0.0, 0.0, -50.0),
+    grip_mm: ToolVec = Field((0.0, 0.0, -50.0),
                           description="reference point A (the grip) in {H} (mm)")
 
 
@@ -55,7 +83,7 @@ class FileSpec(Strict):
     size: int = Field(25, ge=6, le=140, description="ISO size: tip diameter in 1/100 mm")
     taper: float = Field(0.06, gt=0.0, le=0.12, description="taper (mm per mm)")
     length_mm: Literal[21, 25, 28, 31] = Field(25, description="total length (mm)")
-    torsional_strength_mnm: float = Field(
+    torsional_strength_mnm: MilliNm = Field(
         FILE_TORQUE_LIMIT_MNM, gt=0.0, le=200.0,
         description="torque at which the file fractures (mNm); thesis 62 mNm")
 
@@ -139,9 +167,9 @@ class StalePeriods(Strict):
 
 
 class LimitsSpec(Strict):
-    torque_limit_mnm: float = Field(0.9 * FILE_TORQUE_LIMIT_MNM, gt=0.0,
-                                    le=FILE_TORQUE_LIMIT_MNM,
-                                    description="hard file-torque limit (mNm)")
+    torque_limit_mnm: MilliNm = Field(
+        LIMIT_SHARE_OF_STRENGTH * FILE_TORQUE_LIMIT_MNM, gt=0.0, le=200.0,
+        description="hard file-torque limit (mNm); at most 90 % of the file's strength")
     patient_moved_n: float = Field(1.5, ge=0.2, le=10.0,
                                    description="||f_H|| above which the patient moved (N)")
     axial_force_limit_n: float = Field(3.0, ge=0.5, le=20.0,
@@ -151,7 +179,8 @@ class LimitsSpec(Strict):
 
 class RecordingSpec(Strict):
     enabled: bool = True
-    path: str | None = Field(None, description="MCAP file; default runs/<name>-<seed>.mcap")
+    path: str | None = Field(None, min_length=1, max_length=1024,
+                             description="MCAP file; default runs/<name>-<seed>.mcap")
 
 
 class CalibrateLoadStep(Strict):
@@ -160,7 +189,7 @@ class CalibrateLoadStep(Strict):
 
 class DragStep(Strict):
     duration_s: float = Field(2.0, gt=0.0, le=600.0, description="how long (s)")
-    hand_force_n: Vec3 = Field((0.0, 0.0, 0.0),
+    hand_force_n: tuple[HandN, HandN, HandN] = Field((0.0, 0.0, 0.0),
                                description="scripted operator hand force at the grip, base "
                                            "frame (N; simulator only)")
 
@@ -175,8 +204,8 @@ class AlignStep(Strict):
     rpm: float = Field(0.0, ge=0.0, le=200.0, description="file speed while aligning (rpm)")
     config: Literal["A", "B", "C"] | None = Field(
         None, description="thesis Table 6.4 configuration (experiment 1)")
-    tau_d_mnm: float = Field(40.0, gt=0.0, lt=FILE_TORQUE_LIMIT_MNM,
-                             description="desired file torque for config C (mNm)")
+    tau_d_mnm: MilliNm = Field(40.0, gt=0.0, le=200.0,
+                               description="desired file torque for config C (mNm)")
 
 
 class RoundSpec(Strict):
@@ -185,13 +214,14 @@ class RoundSpec(Strict):
 
 class DrillStep(Strict):
     strategy: Literal["automated", "feedrate", "reversal", "none"] = "automated"
-    tau_d_mnm: float = Field(40.0, gt=0.0, lt=FILE_TORQUE_LIMIT_MNM,
-                             description="desired file torque (mNm); thesis 40 or 50")
+    tau_d_mnm: MilliNm = Field(40.0, gt=0.0, le=200.0,
+                               description="desired file torque (mNm); thesis 40 or 50")
     fz_min_n: float = Field(-0.5, ge=-2.0, le=0.0, description="feed force lower bound (N)")
     fz_max_n: float = Field(0.5, gt=0.0, le=2.0, description="feed force upper bound (N)")
     rpm: float = Field(60.0, gt=0.0, le=200.0, description="file speed (rpm); thesis 60")
     rounds: list[RoundSpec] | None = Field(
-        None, description="rounds of continued passes, each until its duration; none: one pass")
+        None, min_length=1, max_length=100,
+        description="rounds of continued passes, each until its duration; none: one pass")
     section_mm: float = Field(2.0, ge=0.2, le=10.0, description="reversal strategy section")
     min_rounds: int = Field(10, ge=1, le=100, description="reversal strategy rounds/section")
 
@@ -230,7 +260,7 @@ class Step(Strict):
 
 class Protocol(Strict):
     name: str = Field(min_length=1, max_length=80)
-    description: str = ""
+    description: str = Field("", max_length=4000)
     seed: int = Field(0, ge=0, le=2**32 - 1, description="simulator seed")
     control: ControlSpec = ControlSpec()
     tool: ToolSpec = ToolSpec()
@@ -239,4 +269,66 @@ class Protocol(Strict):
     patient: PatientSpec = PatientSpec()
     limits: LimitsSpec = LimitsSpec()
     recording: RecordingSpec = RecordingSpec()
-    steps: Annotated[list[Step], Field(min_length=1)]
+    steps: Annotated[list[Step], Field(min_length=1, max_length=200)]
+
+    def planned_s(self) -> float:
+        """The steps' planned durations added up (s); a single drilling pass counts 0."""
+        total = 0.0
+        for step in self.steps:
+            spec = step.spec
+            if step.kind in ("drag", "align"):
+                total += spec.duration_s
+            elif step.kind == "drill" and spec.rounds:
+                total += sum(r.duration_s for r in spec.rounds)
+        return total
+
+    def cross_checks(self, limit_share: float = LIMIT_SHARE_OF_STRENGTH
+                     ) -> list[tuple[tuple, str]]:
+        """What no single field can say: each problem at the field it names. ``limit_share``:
+        the largest share of the file's strength the hard torque limit may be (only a study on
+        the built-in simulator, without the runtime's net, raises it)."""
+        out: list[tuple[tuple, str]] = []
+        wl, length = self.phantom.working_length_mm, self.file.length_mm
+        if wl + FILE_CLEARANCE_MM > length:
+            out.append((("phantom", "working_length_mm"),
+                        f"{wl:g} mm does not fit the {length} mm file: at most "
+                        f"{length - FILE_CLEARANCE_MM:g} mm ({FILE_CLEARANCE_MM:g} mm of the "
+                        "file stays out of the canal); use a longer file"))
+        reach = math.hypot(*self.tool.tip_mm)
+        if reach > MAX_TOOL_MM:
+            out.append((("tool", "tip_mm"), f"{reach:.0f} mm from the flange: at most "
+                                            f"{MAX_TOOL_MM:g} mm (check the unit: mm)"))
+        strength = self.file.torsional_strength_mnm
+        limit = self.limits.torque_limit_mnm
+        if limit > limit_share * strength + 1e-9:
+            out.append((("limits", "torque_limit_mnm"),
+                        f"{limit:g} mNm is too close to the file's strength ({strength:g} "
+                        f"mNm): at most {limit_share * strength:.1f} mNm "
+                        f"({100 * limit_share:.0f} %)"))
+        rate = self.control.rate_hz
+        for name, max_s in STALE_MAX_S.items():
+            n = getattr(self.limits.stale_periods, name)
+            if n / rate > max_s + 1e-12:
+                out.append((("limits", "stale_periods", name),
+                            f"{n} periods = {1000 * n / rate:.0f} ms at {rate:g} Hz: at most "
+                            f"{1000 * max_s:.0f} ms ({math.floor(max_s * rate + 1e-9)} "
+                            "periods)"))
+        calibrated_at = next((i for i, s in enumerate(self.steps)
+                              if s.kind == "calibrate_load"), None)
+        for i, step in enumerate(self.steps):
+            spec = step.spec
+            if calibrated_at is not None and i < calibrated_at and step.kind != "calibrate_load":
+                out.append((("steps", i, step.kind),
+                            f"comes before the load calibration (step {calibrated_at + 1}): "
+                            "force control needs the load identified first"))
+            tau = getattr(spec, "tau_d_mnm", None)
+            if tau is not None and (step.kind == "drill" or spec.config == "C") \
+                    and tau >= limit:
+                out.append((("steps", i, step.kind, "tau_d_mnm"),
+                            f"{tau:g} mNm is not below the torque limit "
+                            f"(limits.torque_limit_mnm = {limit:g} mNm)"))
+        total = self.planned_s()
+        if total > MAX_PROCEDURE_S:
+            out.append((("steps",), f"{total:g} s planned in all: at most "
+                                    f"{MAX_PROCEDURE_S:g} s ({MAX_PROCEDURE_S / 3600:g} h)"))
+        return out

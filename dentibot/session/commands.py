@@ -25,7 +25,7 @@ from pydantic import BaseModel, ValidationError
 
 from dentibot.errors import DentibotError
 from dentibot.protocol.loader import describe_error
-from dentibot.protocol.schema import STEP_MODELS
+from dentibot.protocol.schema import STEP_MODELS, Protocol, Step
 
 #: Unit suffixes a parameter may be given without (``tau_d`` -> ``tau_d_mnm``).
 UNIT_SUFFIXES = ("_mnm", "_n", "_mm", "_s", "_deg")
@@ -191,9 +191,12 @@ def _canonical(kind: str, key: str) -> str:
     return key           # unknown: the model reports it ("unknown key")
 
 
-def validate_step(kind: str, params: dict[str, Any]) -> BaseModel:
+def validate_step(kind: str, params: dict[str, Any],
+                  protocol: Protocol | None = None) -> BaseModel:
     """``params`` as the protocol's ``kind`` step (``drill``, ``align`` ...), or CommandError
-    naming the field, the value and the limit (the protocol loader's wording)."""
+    naming the field, the value and the limit (the protocol loader's wording). The step is
+    also held to ``protocol``'s cross-field rules (e.g. tau_d below its torque limit), as if
+    it were the protocol's only step (default: the protocol defaults)."""
     if kind not in STEP_MODELS:
         raise CommandError(f"unknown step '{kind}'; steps: {', '.join(STEP_MODELS)}")
     data: dict[str, Any] = {}
@@ -205,13 +208,20 @@ def validate_step(kind: str, params: dict[str, Any]) -> BaseModel:
             val = [{"duration_s": r} if isinstance(r, int | float) else r for r in val]
         data[name] = val
     try:
-        return STEP_MODELS[kind].model_validate(data)
+        spec = STEP_MODELS[kind].model_validate(data)
     except ValidationError as exc:
         problems = []
         for err in exc.errors():
             loc = ".".join(str(x) for x in err["loc"])
             problems.append(f"{kind}.{loc}: {describe_error(err)}")
         raise CommandError("; ".join(problems)) from None
+    base = protocol or Protocol(name="session", steps=[Step(**{kind: spec})])
+    alone = base.model_copy(update={"steps": [Step(**{kind: spec})]})
+    problems = [f"{'.'.join(map(str, (kind, *loc[3:])))}: {text}"
+                for loc, text in alone.cross_checks() if loc[:1] == ("steps",)]
+    if problems:
+        raise CommandError("; ".join(problems))
+    return spec
 
 
 # ---------------------------------------------------------------------------- help

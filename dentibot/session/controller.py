@@ -339,7 +339,7 @@ class SessionController:
         return [reply]
 
     async def _cmd_align(self, cmd: Command) -> list[Reply]:
-        spec = validate_step("align", cmd.params)
+        spec = validate_step("align", cmd.params, self.protocol)
         rt = self.runtime
 
         async def act():
@@ -358,7 +358,7 @@ class SessionController:
                                                    if spec.config else ""))]
 
     async def _cmd_drill(self, cmd: Command) -> list[Reply]:
-        return await self._start_step("drill", validate_step("drill", cmd.params))
+        return await self._start_step("drill", validate_step("drill", cmd.params, self.protocol))
 
     async def _cmd_step(self, cmd: Command) -> list[Reply]:
         if not cmd.args:
@@ -376,7 +376,7 @@ class SessionController:
         if len(cmd.args) > 1:
             raise CommandError(f"unexpected {' '.join(cmd.args[1:])!r}: parameters are "
                                "key=value")
-        return await self._start_step(what, validate_step(what, cmd.params))
+        return await self._start_step(what, validate_step(what, cmd.params, self.protocol))
 
     async def _start_step(self, kind: str, spec) -> list[Reply]:
         """Run the protocol runner's ``kind`` step as the activity; first ask the machine

@@ -24,7 +24,7 @@ def test_a_broken_protocol_is_refused_before_anything_starts(tmp_path, capsys):
     out = tmp_path / "never.mcap"
     assert main(["run", str(bad), "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert f"{bad}:3: steps.0.drill.tau_d_mnm: value 500 is out of range: must be < 62" in err
+    assert f"{bad}:3: steps.0.drill.tau_d_mnm: value 500 is out of range: must be <= 200" in err
     assert "steps.0.drill.rmp: unknown key" in err
     assert not out.exists()
 

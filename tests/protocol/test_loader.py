@@ -36,7 +36,7 @@ def test_defaults_are_the_thesis_values():
     ("name: t\nsteps:\n  - drill:\n      tau_d: 40\n", 4, "steps.0.drill.tau_d", "unknown key"),
     # value out of range, with its limit (a unit mistake: tau_d in uNm, rpm at the motor)
     ("name: t\nsteps:\n  - drill:\n      tau_d_mnm: 500\n", 4, "steps.0.drill.tau_d_mnm",
-     "500 is out of range: must be < 62"),
+     "500 is out of range: must be <= 200"),
     ("name: t\nsteps:\n  - drill:\n      rpm: 20000\n", 4, "steps.0.drill.rpm",
      "20000 is out of range: must be <= 200"),
     # wrong type

@@ -4,6 +4,7 @@ report from the file equal to the live summary, exit statuses, a safe abort."""
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 
 import pytest
@@ -55,13 +56,14 @@ async def test_run_records_every_tick_and_the_report_equals_the_live_summary(tmp
 
 async def test_a_fault_or_fracture_ends_with_a_nonzero_status(tmp_path):
     # the "none" ablation (constant feed, no torque regulation, no reversal) in an acrylic
-    # phantom, with the runtime's hard torque limit at the file's strength: the flutes rub
-    # and screw in until the torque exceeds the 62 mNm strength
+    # phantom, with a defective file: labelled 62 mNm (so the hard limit is 55.8 mNm) but
+    # breaking at 45 mNm; the flutes rub and screw in until the torque exceeds 45 mNm
     text = SHORT.replace("strategy: automated", "strategy: none").replace(
         "working_length_mm: 8.0", "working_length_mm: 16.0, material: acrylic").replace(
-        "seed: 2", "seed: 2\nlimits: {torque_limit_mnm: 62}").replace(
         "duration_s: 8", "duration_s: 30")
-    res = await ProtocolRunner(parse_protocol(text), recording=tmp_path / "r.mcap").run()
+    runner = ProtocolRunner(parse_protocol(text), recording=tmp_path / "r.mcap")
+    runner.world.file = dataclasses.replace(runner.world.file, torsional_strength_mnm=45.0)
+    res = await runner.run()
     assert res.summary.status == "fracture" and res.summary.fractures == 1
     assert res.exit_code == EXIT_CODES[res.summary.status] != 0
     assert res.summary.reason

@@ -61,6 +61,7 @@ def _loader_message(kind: str, field: str, value) -> str:
 
 @pytest.mark.parametrize("kind, field, value", [
     ("drill", "tau_d_mnm", FILE_TORQUE_LIMIT_MNM + 18),   # above the file's 62 mNm strength
+    ("drill", "tau_d_mnm", 0.05),                          # N m for mNm
     ("drill", "strategy", "fastest"),
     ("drag", "duration_s", -1),
     ("align", "config", "D"),
@@ -74,10 +75,13 @@ def test_invalid_values_get_the_protocol_files_wording(kind, field, value):
     assert text.split(": ", 1)[1] == _loader_message(kind, field, value)
 
 
-def test_the_torque_limit_is_the_thesis_file_strength():
+def test_tau_d_must_stay_below_the_torque_limit_of_the_thesis_file():
+    # the hard limit defaults to 90 % of the thesis file's 62 mNm strength: 55.8 mNm
     with pytest.raises(CommandError) as e:
-        validate_step("drill", {"tau_d": 62})
-    assert "must be < 62.0" in str(e.value)
+        validate_step("drill", {"tau_d": 56})
+    assert str(e.value) == ("drill.tau_d_mnm: 56 mNm is not below the torque limit "
+                            "(limits.torque_limit_mnm = 55.8 mNm)")
+    assert validate_step("drill", {"tau_d": 55}).tau_d_mnm == 55.0
 
 
 def test_completion_of_commands_subcommands_and_parameters():

@@ -99,7 +99,7 @@ async def test_refusals_name_the_state_and_what_is_needed(stepped):
     r = await say(c, "align")
     assert r.kind == "refused" and "needs a load calibration (calibrate load)" in r.text
     r = await say(c, "drill tau_d=70")
-    assert r.kind == "error" and "drill.tau_d_mnm: value 70 is out of range" in r.text
+    assert r.kind == "error" and "drill.tau_d_mnm: 70 mNm is not below the torque limit" in r.text
     # nothing moved and nothing changed
     assert c.state == "idle" and c.world.handpiece.cmd_rpm == 0.0
     await say(c, "quit")
