@@ -20,9 +20,9 @@ import shlex
 from dataclasses import dataclass, field
 from typing import Any
 
-import yaml
 from pydantic import BaseModel, ValidationError
 
+from dentibot import yamlfile
 from dentibot.errors import DentibotError
 from dentibot.protocol.loader import describe_error
 from dentibot.protocol.schema import STEP_MODELS, Protocol, Step
@@ -127,14 +127,15 @@ class Command:
 
 
 def _value(text: str) -> Any:
+    """A parameter's value read as YAML (strictly: :mod:`dentibot.yamlfile`), else the text."""
     try:
-        v = yaml.safe_load(text)
-    except yaml.YAMLError:
+        v, _ = yamlfile.parse(text, "command")
+    except yamlfile.YamlFileError:
         return text
     if isinstance(v, str) and "," in v:          # 0,0,-1 -> [0, 0, -1]
         try:
-            lst = yaml.safe_load(f"[{text}]")
-        except yaml.YAMLError:
+            lst, _ = yamlfile.parse(f"[{text}]", "command")
+        except yamlfile.YamlFileError:
             return v
         return lst
     return v
