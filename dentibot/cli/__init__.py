@@ -34,7 +34,7 @@ def _configure_logging(args: argparse.Namespace) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from dentibot.cli import experiment, fk, plot, report, run, selftest, session, sim
+    from dentibot.cli import experiment, fk, plot, recover, report, run, selftest, session, sim
 
     parser = argparse.ArgumentParser(prog="dentibot", description="The dentibot command line.")
     parser.add_argument("--version", action="version", version=f"dentibot {__version__}")
@@ -43,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="log level (logs go to stderr)")
     parser.add_argument("--log-json", action="store_true", help="logs as JSON lines")
     sub = parser.add_subparsers(dest="command")
-    for command in (run, sim, experiment, session, selftest, fk, report, plot):
+    for command in (run, sim, experiment, session, selftest, fk, report, recover, plot):
         command.add_parser(sub)
     return parser
 

@@ -3,8 +3,13 @@
 :func:`read_recording` walks the file front to back with the mcap library's
 :class:`~mcap.stream_reader.StreamReader` (it never needs the summary section at the end, which
 a crashed run does not have). Chunk CRCs are checked, so a chunk cut in the middle is refused
-whole: what comes back is every message of every complete chunk, in file order, and
-``complete`` says whether the file was finished (footer read, nothing cut off).
+whole: what comes back is every message of every complete chunk, in file order.
+
+``complete`` says whether the recording was finished by its recorder: read to a footer that
+closes a summary section. A recording cut short ends either in the middle of a record or with
+the provisional end its recorder keeps after the data (a footer without summary, see
+:mod:`dentibot.telemetry.recorder`); a file rewritten by ``dentibot recover`` has a summary but
+carries a ``dentibot.recovery`` metadata record (``recovered``): neither is complete.
 """
 
 from __future__ import annotations
@@ -18,16 +23,19 @@ from typing import Any
 
 import numpy as np
 import structlog
-from mcap.records import Channel, Footer, Message
+from mcap.records import Channel, Footer, Message, Metadata
 from mcap.stream_reader import StreamReader
 from mcap.writer import MCAP0_MAGIC
 
 from dentibot.errors import ConfigError
 from dentibot.telemetry.schema import TICK_FIELDS, TOPICS, TelemetryError
 
-__all__ = ["MessageStream", "Recording", "read_recording"]
+__all__ = ["RECOVERY_METADATA_NAME", "MessageStream", "Recording", "read_recording"]
 
 TOPIC_NAMES = frozenset(TOPICS)
+
+#: MCAP metadata record that ``dentibot recover`` adds to the files it rewrites
+RECOVERY_METADATA_NAME = "dentibot.recovery"
 
 log = structlog.get_logger("dentibot.telemetry")
 
@@ -40,8 +48,10 @@ class Recording:
 
     ``metadata``: the ``/run`` message ({} if cut before it); ``rows``: the ``/tick`` rows in
     order; ``events``: the ``/events`` messages; ``end``: the ``/run/end`` message or None;
-    ``complete``: the file was finished and read to its end; ``problems``: what could not be
-    read (truncation, undecodable messages), as text.
+    ``complete``: the recording was finished by its recorder and read to its end;
+    ``recovered``: the ``dentibot.recovery`` metadata (source, ticks, ...) of a file rewritten
+    by ``dentibot recover``, else None; ``problems``: what could not be read (truncation, no
+    summary, undecodable messages), as text.
     """
 
     path: Path
@@ -50,6 +60,7 @@ class Recording:
     events: list[dict[str, Any]] = field(default_factory=list)
     end: dict[str, Any] | None = None
     complete: bool = False
+    recovered: dict[str, str] | None = None
     problems: list[str] = field(default_factory=list)
 
     @property
@@ -89,8 +100,8 @@ class Recording:
 class MessageStream:
     """The messages of a recording, streamed: iterate for ``(topic, decoded JSON)`` pairs of
     the DentiBot topics (``/run``, ``/tick``, ``/events``, ``/run/end``) in file order, without
-    holding the file in memory. After the iteration, ``complete`` and ``problems`` say how it
-    went (as in :class:`Recording`).
+    holding the file in memory. After the iteration, ``complete``, ``recovered`` and
+    ``problems`` say how it went (as in :class:`Recording`).
 
     Raises TelemetryError at construction if the file is missing, unreadable or not MCAP.
     """
@@ -108,10 +119,12 @@ class MessageStream:
             raise TelemetryError(self.path, f"not an MCAP file (starts with {magic[:8]!r}, "
                                  f"expected {MCAP0_MAGIC!r})")
         self.complete = False
+        self.recovered: dict[str, str] | None = None
         self.problems: list[str] = []
 
     def __iter__(self) -> Iterator[tuple[str, Any]]:
         self.complete = False
+        self.recovered = None
         self.problems = []
         try:
             f = open(self.path, "rb")  # noqa: SIM115 - closed below
@@ -120,7 +133,7 @@ class MessageStream:
         with f:
             size = os.fstat(f.fileno()).st_size
             topics: dict[int, str] = {}
-            footer = False
+            footer: Footer | None = None
             try:
                 for record in StreamReader(f, validate_crcs=True,
                                            record_size_limit=max(size, 1)).records:
@@ -132,13 +145,19 @@ class MessageStream:
                                 yield topic, obj
                     elif isinstance(record, Channel):
                         topics[record.id] = record.topic
+                    elif isinstance(record, Metadata) and record.name == RECOVERY_METADATA_NAME:
+                        self.recovered = dict(record.metadata)
                     elif isinstance(record, Footer):
-                        footer = True
+                        footer = record
             except Exception as exc:  # noqa: BLE001 - any damage ends the readable part
                 self.problems.append(f"stopped reading at byte {f.tell()} of {size}: "
                                      f"{type(exc).__name__}: {exc}")
             else:
-                self.complete = footer
+                if footer is not None and footer.summary_start == 0:
+                    self.problems.append("the recording was not closed (its file ends without "
+                                         "a summary): cut short, or still being written")
+                self.complete = (footer is not None and footer.summary_start != 0
+                                 and self.recovered is None)
         if self.problems:
             log.warning("telemetry.read_incomplete", path=str(self.path),
                         problems=self.problems[:3])
@@ -166,6 +185,7 @@ def read_recording(path: str | os.PathLike[str]) -> Recording:
     for topic, obj in stream:
         _TOPIC_HANDLERS[topic](rec, obj)
     rec.complete = stream.complete
+    rec.recovered = stream.recovered
     rec.problems = stream.problems
     return rec
 

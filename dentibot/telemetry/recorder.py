@@ -1,23 +1,57 @@
-"""MCAP recorder: one message per control tick, written by a thread so the control task never waits.
+"""MCAP recorder: one message per control tick, written by a thread, crash-safe.
 
-:class:`McapRecorder` is fed from the 500 Hz control task. ``record(row)`` and ``event(...)``
-only append to a :class:`collections.deque` (no lock, no I/O, no serialisation) and return; a
-writer thread pops the queue, serialises each item as JSON and writes it to the MCAP file.
+:class:`McapRecorder` is fed from the control task: ``record(row)`` and ``event(...)`` append to
+a :class:`collections.deque` (no I/O, no serialisation) and return; a writer thread pops the
+queue, serialises each item as JSON and writes it to the MCAP file.
 
-Crash safety: the writer finishes the current chunk and flushes the file at least every
-``flush_interval_s`` (0.2 s by default), so whatever happens to the process, everything
-queued more than about that long ago is in the operating system's hands, in complete MCAP
-chunks: a file cut anywhere is readable up to its last complete chunk
-(:func:`dentibot.telemetry.reader.read_recording`). ``fsync=True`` also survives a power cut,
-at the cost of one ``fsync`` per flush.
+What a crash can cost. A recording is the record of a procedure, so a crash (``kill -9``, power
+cut without ``fsync``, interpreter abort) must lose at most ``max_at_risk_s`` (0.1 s) of
+procedure, in any clock mode and whatever the load. Lock-step runs produce ticks 5-20x faster
+than real time, so a bound in wall time alone is not enough: 0.1 s of wall time can be 2 s of
+procedure. The bound is therefore kept in ticks, ``budget = max_at_risk_s x rate_hz`` (50 at
+500 Hz), and it covers everything a crash would lose, the rows still queued *and* those in the
+chunk being built:
+
+- the writer finishes its chunk and hands the file to the operating system every
+  ``budget // 2`` ticks, and at the latest ``flush_interval_s`` (0.05 s) of wall time after
+  the oldest unflushed item was written (for slow or paused producers; with the writer's
+  ``poll_s`` sleep, a row handed over is on the OS within about 60 ms of wall time);
+- ``record()`` applies back-pressure: when ``budget`` ticks are already at risk (handed over,
+  not yet flushed), it waits for the writer's next flush. In lock-step time this costs nothing
+  (time is simulated; the run just takes the writer's pace); in real time it never happens
+  while the writer keeps up (a few microseconds per row, see below) and happens only when the
+  disk stalls, itself a fault worth a late tick rather than a hole in the record;
+- a wait longer than ``max_wait_s`` (1 s: a stalled disk, not a busy writer) is an overflow:
+  the row is dropped and counted (``rows_dropped``, ``overflowed``) and ``record()`` raises
+  :class:`TelemetryOverflow`, so the caller faults the run instead of going on with a
+  recording that has a hole. The queue never grows without bound and a loss is never silent.
+
+Readable as written. The file on disk is always a complete MCAP file: each flush writes the new
+chunk *and* a provisional end (DataEnd, a Footer without summary, the closing magic) with one
+``write`` at the end of the data, and the next flush overwrites that end. A file cut short by
+a crash therefore opens in the standard readers (``mcap.reader.make_reader(f).iter_messages()``
+reads it linearly, as it does any MCAP without summary) with every message up to the last
+flush. Only a kill in the middle of that one ``write`` can leave a damaged end; ``dentibot
+recover`` rewrites such a file (:mod:`dentibot.telemetry.recover`). :meth:`close` writes the
+real summary (indexes, statistics), which is how readers tell a finished recording from an
+interrupted one. ``fsync=True`` also survives a power cut, at the cost of one ``fsync`` per
+flush.
+
+Keeping up. Rows are serialised with orjson (about 1 us for a real row, against 20 us with the
+standard ``json`` module, whose cost used to starve the writer of the interpreter lock in
+lock-step runs); the standard module remains the fallback for values orjson refuses (integers
+beyond 64 bits, non-string keys). The writer hands the interpreter lock back to the control
+thread after each millisecond of continuous work, not after a fixed number of items: a fixed
+count let a busy producer take the lock for a whole switch interval each time and starve the
+writer.
 
 If the writer thread dies (disk full, I/O error...), the next ``record()``/``event()`` raises
 :class:`TelemetryError` carrying the cause: a recording never stops silently.
 
 Ownership: ``record(row)`` takes the row as it is and serialises it later, in the writer
 thread. The caller must not mutate the row (or the lists inside it) after handing it over;
-the runtime builds a fresh dict each tick. Numpy arrays and scalars are accepted (converted
-with ``tolist()``); non-finite floats are written as ``null`` (JSON has no NaN) and counted.
+the runtime builds a fresh dict each tick. Numpy arrays and scalars are accepted; non-finite
+floats are written as ``null`` (JSON has no NaN) and counted.
 """
 
 from __future__ import annotations
@@ -32,9 +66,13 @@ from importlib import metadata as _importlib_metadata
 from pathlib import Path
 from typing import Any, BinaryIO, ClassVar
 
+import numpy as np
+import orjson
 import structlog
+from mcap.data_stream import RecordBuilder
 from mcap.exceptions import McapError
-from mcap.writer import CompressionType, Writer
+from mcap.records import DataEnd, Footer
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from dentibot.errors import ConfigError
 from dentibot.telemetry.schema import (
@@ -45,7 +83,7 @@ from dentibot.telemetry.schema import (
     validate_row,
 )
 
-__all__ = ["COMPRESSIONS", "McapRecorder"]
+__all__ = ["COMPRESSIONS", "McapRecorder", "TelemetryOverflow"]
 
 log = structlog.get_logger("dentibot.telemetry")
 
@@ -60,8 +98,35 @@ MESSAGE_ENCODING = "json"
 SCHEMA_ENCODING = "jsonschema"
 RUN_METADATA_NAME = "dentibot.run"    # MCAP metadata record holding the /run fields as text
 
-_YIELD_EVERY = 16            # items written between GIL hand-overs to the control thread
+DEFAULT_RATE_HZ = 500.0      # budget in ticks when the metadata gives no rate_hz
+_SLICE_S = 0.001             # longest stretch the writer keeps the interpreter lock
 _LOG_FIRST = 5               # problems of each kind logged in full, then only counted
+_ORJSON_OPTIONS = orjson.OPT_SERIALIZE_NUMPY
+
+
+def _provisional_end() -> bytes:
+    """DataEnd + Footer without summary + magic: what makes the data so far a complete MCAP
+    file. A Footer whose ``summary_start`` is 0 says "no summary section": readers then read
+    the data section front to back."""
+    rb = RecordBuilder()
+    DataEnd(data_section_crc=0).write(rb)
+    Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(rb)
+    return bytes(rb.end()) + MCAP0_MAGIC
+
+
+PROVISIONAL_END = _provisional_end()
+
+
+class TelemetryOverflow(TelemetryError):
+    """The writer did not make room in time: a row was dropped (the recording has a hole).
+
+    Raised by :meth:`McapRecorder.record` after waiting ``max_wait_s`` for the writer; the
+    caller should fault the run. ``rows_dropped`` counts the rows lost so far.
+    """
+
+    def __init__(self, path: object, detail: str, rows_dropped: int) -> None:
+        self.rows_dropped = rows_dropped
+        super().__init__(path, detail)
 
 
 def _json_default(obj: Any) -> Any:
@@ -86,8 +151,41 @@ def _finite(obj: Any) -> Any:
 
 
 def _dumps(obj: Any) -> bytes:
+    """The standard library's encoding: the fallback for what orjson refuses."""
     return json.dumps(obj, allow_nan=False, separators=(",", ":"),
                       default=_json_default).encode()
+
+
+def _nonfinite(obj: Any) -> bool:
+    """True if ``obj`` holds a NaN or an infinity anywhere (orjson writes them as null).
+
+    Cheap on rows: a list of numbers is summed in C (a NaN or infinity makes the sum
+    non-finite; only then are its items looked at one by one)."""
+    t = type(obj)
+    if t is float:
+        return obj - obj != 0.0                 # nan and inf give nan; finite gives 0.0
+    if t is dict:
+        for v in obj.values():
+            tv = type(v)
+            if tv is float:
+                if v - v != 0.0:
+                    return True
+            elif tv is not int and tv is not str and tv is not bool and v is not None \
+                    and _nonfinite(v):
+                return True
+        return False
+    if t is list or t is tuple:
+        try:
+            s = sum(obj)
+        except TypeError:                         # strings, None, nested lists
+            return any(map(_nonfinite, obj))
+        return s - s != 0.0 and any(map(_nonfinite, obj))
+    if isinstance(obj, float):                  # float subclasses (numpy.float64)
+        return not math.isfinite(obj)
+    dtype = getattr(obj, "dtype", None)
+    if dtype is not None and dtype.kind in "fc":
+        return not bool(np.isfinite(obj).all())
+    return False
 
 
 def _log_time_ns(t: Any, fallback: int) -> int:
@@ -97,22 +195,80 @@ def _log_time_ns(t: Any, fallback: int) -> int:
     return fallback
 
 
+class _Sink:
+    """Where the mcap Writer's bytes go. They are staged in memory and written out by
+    :meth:`commit`, each time with one write at the end of the data followed by
+    :data:`PROVISIONAL_END` (which the next commit overwrites): between two commits, the file
+    holds a complete MCAP file. A stream that cannot seek gets the data only (appended)."""
+
+    def __init__(self, fd: int | None, stream: BinaryIO | None) -> None:
+        self._fd = fd
+        self._stream = stream
+        self._buf = bytearray()
+        if fd is not None:
+            self.pos = 0
+            self._rewritable = True
+        else:
+            self._rewritable = bool(getattr(stream, "seekable", lambda: False)())
+            self.pos = stream.tell() if self._rewritable else 0
+
+    # the file-like side the mcap Writer uses
+    def write(self, data: bytes) -> int:
+        self._buf += data
+        return len(data)
+
+    def tell(self) -> int:
+        return self.pos + len(self._buf)
+
+    def flush(self) -> None:
+        """The Writer calls this after each chunk; :meth:`commit` decides when data goes out."""
+
+    def commit(self, final: bool = False) -> None:
+        """Write the staged bytes (and, unless ``final``, the provisional end) at the end of
+        the data. ``final``: the Writer's own end (summary, footer) is in the staged bytes;
+        anything left beyond it (an older provisional end) is cut off."""
+        data = bytes(self._buf)
+        if self._rewritable and not final:
+            data += PROVISIONAL_END
+        if self._fd is not None:
+            view, at = memoryview(data), self.pos
+            while view:
+                n = os.pwrite(self._fd, view, at)
+                view, at = view[n:], at + n
+        else:
+            if self._rewritable:
+                self._stream.seek(self.pos)
+            self._stream.write(data)
+            self._stream.flush()
+        self.pos += len(self._buf)
+        self._buf.clear()
+        if final and self._rewritable:
+            if self._fd is not None:
+                os.ftruncate(self._fd, self.pos)
+            elif hasattr(self._stream, "truncate"):
+                self._stream.truncate(self.pos)
+
+
 class McapRecorder:
     """Record a run to an MCAP file: ``/run`` now, ``/tick`` and ``/events`` as they come,
-    ``/run/end`` at :meth:`close`.
+    ``/run/end`` at :meth:`close`. See the module docstring for what a crash can cost.
 
     Parameters (defaults in brackets):
 
     - ``path``: file to create, or a writable binary stream (left open on close).
     - ``metadata``: the run's ``/run`` message (protocol, seed, rate_hz, devices...);
       ``dentibot_version`` is filled in when absent. ``rate_hz`` (> 0) sets the period used
-      for ``duration_s`` (ticks x period); without it, the last row's ``t``.
-    - ``flush_interval_s`` [0.2]: longest time between flushes (chunk finished, file flushed).
+      for ``duration_s`` (ticks x period) and the tick budget; without it, the last row's ``t``
+      and :data:`DEFAULT_RATE_HZ`.
+    - ``max_at_risk_s`` [0.1]: most procedure time a crash may lose; the budget in ticks is
+      this x rate_hz (at least 1).
+    - ``max_queue`` [None]: the budget in ticks, given directly (overrides ``max_at_risk_s``).
+    - ``max_wait_s`` [1.0]: longest back-pressure wait in ``record()`` before the row is
+      dropped and :class:`TelemetryOverflow` raised; 0: never wait.
+    - ``flush_interval_s`` [0.05]: longest wall time an item waits in an unfinished chunk.
     - ``poll_s`` [0.01]: writer's sleep when the queue is empty.
     - ``chunk_size`` [1 MiB]: a chunk is also finished when it grows past this.
     - ``compression`` ["zstd"]: one of :data:`COMPRESSIONS`.
-    - ``max_queue`` [1 000 000 items, ~30 min at 500 Hz]: beyond this, ``record()`` drops the
-      row (counted in ``rows_dropped``) rather than exhaust memory or block.
     - ``fsync`` [False]: ``os.fsync`` after each flush (paths only).
     - ``validate`` [True]: check rows against the schema in the writer thread; invalid rows
       are still written, counted in ``rows_invalid`` and logged.
@@ -121,25 +277,31 @@ class McapRecorder:
     The writer is a daemon thread: call :meth:`close` (or use ``with``); a process that ends
     without it leaves a file readable up to its last flush, flagged incomplete.
 
-    Counters: ``rows_queued``, ``ticks_written``, ``events_written``, ``rows_dropped``,
-    ``rows_rejected`` (not serialisable, skipped), ``rows_invalid``, ``nonfinite_rows``,
-    ``flushes``, ``rows_flushed`` (ticks on disk at the last flush), ``queue_depth_max``.
+    Counters: ``rows_queued``, ``ticks_written``, ``events_written``, ``rows_dropped``
+    (overflow), ``rows_rejected`` (not serialisable, skipped), ``rows_invalid``,
+    ``nonfinite_rows``, ``flushes``, ``rows_flushed`` (ticks on disk at the last flush),
+    ``bytes_flushed``, ``queue_depth_max``, ``at_risk_max`` (most ticks handed over and not
+    yet flushed, seen by ``record()``), ``backpressure_waits``.
     """
 
     def __init__(self, path: str | os.PathLike[str] | BinaryIO,
                  metadata: dict[str, Any] | None = None, *,
-                 flush_interval_s: float = 0.2, poll_s: float = 0.01,
+                 max_at_risk_s: float = 0.1, max_queue: int | None = None,
+                 max_wait_s: float = 1.0, flush_interval_s: float = 0.05, poll_s: float = 0.01,
                  chunk_size: int = 1 << 20, compression: str = "zstd",
-                 max_queue: int = 1_000_000, fsync: bool = False, validate: bool = True,
-                 overwrite: bool = False) -> None:
+                 fsync: bool = False, validate: bool = True, overwrite: bool = False) -> None:
         if not flush_interval_s > 0:
             raise ConfigError("telemetry.flush_interval_s", flush_interval_s, "> 0 s")
         if not poll_s > 0:
             raise ConfigError("telemetry.poll_s", poll_s, "> 0 s")
+        if not (isinstance(max_at_risk_s, (int, float)) and max_at_risk_s > 0):
+            raise ConfigError("telemetry.max_at_risk_s", max_at_risk_s, "> 0 s")
+        if not (isinstance(max_wait_s, (int, float)) and max_wait_s >= 0):
+            raise ConfigError("telemetry.max_wait_s", max_wait_s, ">= 0 s")
         if compression not in COMPRESSIONS:
             raise ConfigError("telemetry.compression", compression, f"one of {list(COMPRESSIONS)}")
-        if not (isinstance(max_queue, int) and max_queue > 0):
-            raise ConfigError("telemetry.max_queue", max_queue, "an integer > 0")
+        if max_queue is not None and not (isinstance(max_queue, int) and max_queue > 0):
+            raise ConfigError("telemetry.max_queue", max_queue, "an integer > 0 (ticks)")
         meta = dict(metadata or {})
         rate = meta.get("rate_hz")
         if rate is not None and not (isinstance(rate, (int, float)) and not isinstance(rate, bool)
@@ -156,9 +318,14 @@ class McapRecorder:
         self.metadata = meta
         self.period_s: float | None = 1.0 / rate if rate else None
 
+        #: most ticks handed over and not yet flushed (queued + in the unfinished chunk)
+        self.budget = max_queue if max_queue is not None else \
+            max(1, math.floor(max_at_risk_s * (rate or DEFAULT_RATE_HZ) + 1e-9))
+        #: the writer finishes its chunk at least every this many ticks
+        self.flush_ticks = max(1, self.budget // 2)
         self.flush_interval_s = flush_interval_s
+        self.max_wait_s = float(max_wait_s)
         self.poll_s = poll_s
-        self.max_queue = max_queue
         self.validate = validate
         self._fsync = fsync
 
@@ -167,6 +334,8 @@ class McapRecorder:
         self.events_queued = 0
         self.rows_dropped = 0
         self.queue_depth_max = 0
+        self.at_risk_max = 0
+        self.backpressure_waits = 0
         self.ticks_written = 0
         self.events_written = 0
         self.rows_rejected = 0
@@ -178,30 +347,40 @@ class McapRecorder:
 
         self._queue: collections.deque[tuple[str, Any]] = collections.deque()
         self._stop = threading.Event()
+        self._wake = threading.Event()          # queue worth a chunk, a waiting producer, stop
+        self._room = threading.Condition(threading.Lock())   # signalled after each flush
         self._error: BaseException | None = None
         self._error_reported = False
         self._closed = False
         self._last_t: float = 0.0
         self._last_tick: int = 0
         self._last_log_ns = 0
-        self._unflushed = 0
-        self._last_flush = time.monotonic()
+        self._ticks_done = 0                    # tick items the writer has dealt with
+        self._settled = 0                       # ... of which are flushed (or rejected)
+        self._unflushed = 0                     # items in the unfinished chunk
+        self._unflushed_ticks = 0
+        self._unflushed_since = 0.0             # monotonic time the oldest of them was written
         self.end: dict[str, Any] | None = None
 
         self._owns_file = not hasattr(path, "write")
         self.path = Path(path) if self._owns_file else Path(str(getattr(path, "name", "<stream>")))
+        self._fd: int | None = None
+        stream: BinaryIO | None = None
         if self._owns_file:
+            flags = os.O_WRONLY | os.O_CREAT | getattr(os, "O_CLOEXEC", 0) | \
+                (os.O_TRUNC if overwrite else os.O_EXCL)
             try:
-                self._file: BinaryIO = open(path, "wb" if overwrite else "xb")  # noqa: SIM115
+                self._fd = os.open(path, flags, 0o644)
             except FileExistsError:
                 raise TelemetryError(path, "file exists; choose another name or pass "
                                      "overwrite=True") from None
             except OSError as exc:
                 raise TelemetryError(path, f"cannot create: {exc}") from exc
         else:
-            self._file = path  # type: ignore[assignment]
+            stream = path  # type: ignore[assignment]
         try:
-            self._writer = Writer(self._file, chunk_size=chunk_size,
+            self._sink = _Sink(self._fd, stream)
+            self._writer = Writer(self._sink, chunk_size=chunk_size,
                                   compression=COMPRESSIONS[compression])
             self._writer.start(profile=PROFILE, library=f"dentibot {meta['dentibot_version']}")
             self._channels: dict[str, int] = {}
@@ -213,6 +392,7 @@ class McapRecorder:
                     topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=schema_id)
             self._writer.add_metadata(RUN_METADATA_NAME, run_text)
             self._writer.add_message(self._channels["/run"], 0, run_json, 0)
+            self._unflushed = 1
             self._flush()
         except McapError as exc:                     # compression library missing
             self._abandon()
@@ -224,22 +404,33 @@ class McapRecorder:
         self._thread = threading.Thread(target=self._run, name=f"mcap-writer:{self.path.name}",
                                         daemon=True)
         self._thread.start()
-        log.info("telemetry.recording", path=str(self.path), rate_hz=rate)
+        log.info("telemetry.recording", path=str(self.path), rate_hz=rate,
+                 budget_ticks=self.budget)
 
-    # -- caller side (the control task): append and return -------------------------------
+    # -- caller side (the control task) ----------------------------------------------------
 
     def record(self, row: dict[str, Any]) -> None:
-        """Queue one tick row; returns at once. Raises TelemetryError if the writer died."""
+        """Queue one tick row. Returns at once unless ``budget`` ticks are at risk; then waits
+        for the writer's next flush (back-pressure), at most ``max_wait_s``.
+
+        Raises TelemetryOverflow if the writer made no room in time (the row is dropped),
+        TelemetryError if the writer died or the recorder is closed.
+        """
         if self._error is not None or self._closed:
             self._raise_dead()
+        if self.rows_queued - self._settled >= self.budget:
+            self._wait_for_room(row)
         q = self._queue
-        if len(q) >= self.max_queue:
-            self.rows_dropped += 1
-            return
         q.append(("tick", row))
         self.rows_queued += 1
         depth = len(q)
-        self.queue_depth_max = max(self.queue_depth_max, depth)
+        if depth > self.queue_depth_max:
+            self.queue_depth_max = depth
+        at_risk = self.rows_queued - self._settled
+        if at_risk > self.at_risk_max:
+            self.at_risk_max = at_risk
+        if depth == self.flush_ticks:               # a chunk's worth: no need to poll for it
+            self._wake.set()
         t = row.get("t")
         if isinstance(t, (int, float)):
             self._last_t = t
@@ -247,9 +438,37 @@ class McapRecorder:
         if isinstance(tick, int):
             self._last_tick = tick
 
+    def _wait_for_room(self, row: Any) -> None:
+        self.backpressure_waits += 1
+        deadline = time.monotonic() + self.max_wait_s
+        with self._room:
+            while self.rows_queued - self._settled >= self.budget:
+                if self._error is not None:
+                    break
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    self._overflow(row)
+                self._wake.set()
+                self._room.wait(remaining)
+        if self._error is not None:
+            self._raise_dead()
+
+    def _overflow(self, row: Any) -> None:
+        self.rows_dropped += 1
+        at_risk = self.rows_queued - self._settled
+        tick = row.get("tick") if isinstance(row, dict) else None
+        detail = (f"the writer made no room in {self.max_wait_s:g} s ({at_risk} ticks waiting "
+                  f"to reach the file, {self.rows_flushed} on disk): tick {tick} dropped, "
+                  f"{self.rows_dropped} row(s) lost so far; the recording has a hole")
+        if self.rows_dropped <= _LOG_FIRST:
+            log.error("telemetry.overflow", path=str(self.path), tick=tick,
+                      rows_dropped=self.rows_dropped, at_risk=at_risk)
+        raise TelemetryOverflow(self.path, detail, self.rows_dropped)
+
     def event(self, kind: str, detail: str = "", *, t: float | None = None,
               tick: int | None = None) -> None:
-        """Queue an ``/events`` message; ``t``/``tick`` default to the last recorded row's."""
+        """Queue an ``/events`` message; ``t``/``tick`` default to the last recorded row's.
+        Never waits: events are few and ride along with the ticks' budget."""
         if self._error is not None or self._closed:
             self._raise_dead()
         self._queue.append(("event", {
@@ -262,6 +481,16 @@ class McapRecorder:
     def queue_depth(self) -> int:
         """Items waiting for the writer thread now."""
         return len(self._queue)
+
+    @property
+    def at_risk(self) -> int:
+        """Ticks handed over and not yet flushed to the OS: what a crash now would lose."""
+        return max(self.rows_queued - self._settled, 0)
+
+    @property
+    def overflowed(self) -> bool:
+        """True once a row was dropped because the writer made no room in time."""
+        return self.rows_dropped > 0
 
     @property
     def error(self) -> BaseException | None:
@@ -280,8 +509,9 @@ class McapRecorder:
 
     def close(self, status: str = "ok", reason: str = "",
               duration_s: float | None = None) -> dict[str, Any] | None:
-        """Write ``/run/end`` {status, reason, duration_s}, flush, finish the file, join the
-        writer. Idempotent (later calls return the first end record). Returns the end record.
+        """Write ``/run/end`` {status, reason, duration_s}, flush, finish the file (summary),
+        join the writer. Idempotent (later calls return the first end record). Returns the
+        end record.
 
         Raises TelemetryError if the writer died and that was not reported yet.
         """
@@ -294,10 +524,12 @@ class McapRecorder:
                     "duration_s": self.duration_s() if duration_s is None else duration_s}
         self._queue.append(("end", self.end))
         self._stop.set()
+        self._wake.set()
         self._thread.join()
         log.info("telemetry.closed", path=str(self.path), status=status,
                  ticks_written=self.ticks_written, rows_dropped=self.rows_dropped,
-                 queue_depth_max=self.queue_depth_max)
+                 queue_depth_max=self.queue_depth_max, at_risk_max=self.at_risk_max,
+                 backpressure_waits=self.backpressure_waits)
         if self._error is not None and not self._error_reported:
             self._raise_dead()
         return self.end
@@ -331,36 +563,52 @@ class McapRecorder:
                 self._drain()
                 if self._unflushed and (
                         stopping
-                        or time.monotonic() - self._last_flush >= self.flush_interval_s):
+                        or time.monotonic() - self._unflushed_since >= self.flush_interval_s):
                     self._flush()
                 if stopping:
                     break
-                self._stop.wait(self.poll_s)
+                self._wake.wait(self.poll_s)
+                self._wake.clear()
             self._writer.finish()
-            self._file.flush()
-            if self._fsync and self._owns_file:
-                os.fsync(self._file.fileno())
-            if self._owns_file:
-                self._file.close()
+            self._sink.commit(final=True)
+            if self._fsync and self._fd is not None:
+                os.fsync(self._fd)
+            self.bytes_flushed = self._sink.pos
+            self._close_file()
         except BaseException as exc:  # noqa: BLE001 - reported to the caller, never lost
             self._error = exc
             log.error("telemetry.writer_died", path=str(self.path), error=repr(exc),
                       ticks_written=self.ticks_written, rows_flushed=self.rows_flushed)
             self._abandon()
+            with self._room:
+                self._room.notify_all()          # a producer waiting for room learns it now
 
     def _drain(self) -> None:
         q = self._queue
-        n = 0
+        handlers = self._HANDLERS
+        clock = time.monotonic
+        slice_end = clock() + _SLICE_S
         while q:
             kind, payload = q.popleft()
-            self._HANDLERS[kind](self, payload)
-            n += 1
-            if n % _YIELD_EVERY == 0:
-                time.sleep(0)                     # hand the GIL to the control thread
-                if time.monotonic() - self._last_flush >= self.flush_interval_s:
-                    self._flush()
+            handlers[kind](self, payload)
+            now = clock()
+            if self._unflushed_ticks >= self.flush_ticks or (
+                    self._unflushed and now - self._unflushed_since >= self.flush_interval_s):
+                self._flush()
+            if now >= slice_end:
+                time.sleep(0)                     # hand the interpreter lock to the control thread
+                slice_end = clock() + _SLICE_S
 
     def _encode(self, obj: Any, what: str) -> bytes | None:
+        try:
+            data = orjson.dumps(obj, default=_json_default, option=_ORJSON_OPTIONS)
+        except TypeError:                         # beyond orjson: big ints, odd keys, objects
+            return self._encode_std(obj, what)
+        if _nonfinite(obj):
+            self._count_nonfinite(what)
+        return data
+
+    def _encode_std(self, obj: Any, what: str) -> bytes | None:
         try:
             return _dumps(obj)
         except ValueError:                        # NaN / inf: JSON has none
@@ -371,11 +619,14 @@ class McapRecorder:
             data = _dumps(_finite(obj))
         except (TypeError, ValueError, RecursionError) as exc:
             return self._reject(what, exc)
+        self._count_nonfinite(what)
+        return data
+
+    def _count_nonfinite(self, what: str) -> None:
         self.nonfinite_rows += 1
         if self.nonfinite_rows <= _LOG_FIRST:
             log.warning("telemetry.nonfinite", path=str(self.path), what=what,
                         detail="non-finite floats written as null")
-        return data
 
     def _reject(self, what: str, exc: BaseException) -> None:
         self.rows_rejected += 1
@@ -391,10 +642,13 @@ class McapRecorder:
         self._last_log_ns = log_ns
         self._writer.add_message(self._channels[topic], log_ns, data, log_ns,
                                  sequence=sequence & 0xFFFFFFFF)
+        if not self._unflushed:
+            self._unflushed_since = time.monotonic()
         self._unflushed += 1
         return True
 
     def _write_tick(self, row: dict[str, Any]) -> None:
+        self._ticks_done += 1
         if self.validate:
             problems = validate_row(row) if isinstance(row, dict) else ["row is not a dict"]
             if problems:
@@ -405,10 +659,19 @@ class McapRecorder:
                                 problems=problems[:5], rows_invalid=self.rows_invalid)
         if not isinstance(row, dict):
             self._reject("/tick", TypeError(f"row is a {type(row).__name__}, not a dict"))
-            return
-        tick = row.get("tick")
-        if self._write("/tick", row, row.get("t"), tick if isinstance(tick, int) and tick >= 0 else 0):
-            self.ticks_written += 1
+        else:
+            tick = row.get("tick")
+            if self._write("/tick", row, row.get("t"),
+                           tick if isinstance(tick, int) and tick >= 0 else 0):
+                self.ticks_written += 1
+                self._unflushed_ticks += 1
+                return
+        # rejected: nothing to write, but the row counts as settled only at the next flush
+        # (so the producer's budget is given back even if every row were rejected)
+        if not self._unflushed:
+            self._unflushed_since = time.monotonic()
+        self._unflushed += 1
+        self._unflushed_ticks += 1
 
     def _write_event(self, ev: dict[str, Any]) -> None:
         if self._write("/events", ev, ev["t"], ev["tick"] if isinstance(ev["tick"], int) else 0):
@@ -417,29 +680,36 @@ class McapRecorder:
     def _write_end(self, end: dict[str, Any]) -> None:
         self._write("/run/end", end, self._last_t)
 
-    _HANDLERS: ClassVar[dict[str, Any]] = {"tick": _write_tick, "event": _write_event, "end": _write_end}
+    _HANDLERS: ClassVar[dict[str, Any]] = {"tick": _write_tick, "event": _write_event,
+                                           "end": _write_end}
 
     def _flush(self) -> None:
-        """Finish the chunk in progress and push everything to the OS (and disk if fsync)."""
+        """Finish the chunk in progress and hand it, with a provisional end, to the OS in one
+        write (and to the disk if fsync); then wake a producer waiting for room."""
         self._writer.flush()
-        if self._fsync and self._owns_file:
-            os.fsync(self._file.fileno())
-        self._last_flush = time.monotonic()
+        self._sink.commit()
+        if self._fsync and self._fd is not None:
+            os.fsync(self._fd)
         self._unflushed = 0
+        self._unflushed_ticks = 0
         self.flushes += 1
         self.rows_flushed = self.ticks_written
-        try:
-            self.bytes_flushed = self._file.tell()
-        except (OSError, AttributeError, ValueError):
-            pass
+        self.bytes_flushed = self._sink.pos
+        self._settled = self._ticks_done
+        with self._room:
+            self._room.notify_all()
+
+    def _close_file(self) -> None:
+        if self._fd is not None:
+            fd, self._fd = self._fd, None
+            os.close(fd)
 
     def _abandon(self) -> None:
         """Close our file without finishing it (what is flushed stays readable)."""
-        if self._owns_file:
-            try:
-                self._file.close()
-            except OSError as exc:
-                log.error("telemetry.close_failed", path=str(self.path), error=repr(exc))
+        try:
+            self._close_file()
+        except OSError as exc:
+            log.error("telemetry.close_failed", path=str(self.path), error=repr(exc))
 
 
 def _dentibot_version() -> str:

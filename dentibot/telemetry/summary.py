@@ -45,7 +45,7 @@ from dentibot.telemetry.reader import MessageStream, Recording
 from dentibot.telemetry.schema import END_STATUSES
 
 __all__ = ["INCOMPLETE", "RunSummary", "StepSummary", "SummaryAccumulator", "summarize_file",
-           "summarize_recording", "summary_json", "summary_table"]
+           "summarize_recording", "summarize_stream", "summary_json", "summary_table"]
 
 INCOMPLETE = "incomplete"     # status of a recording without /run/end (crash, still running)
 SUMMARY_STATUSES: tuple[str, ...] = (*END_STATUSES, INCOMPLETE)
@@ -271,18 +271,24 @@ class SummaryAccumulator:
                    for name, fig in self._steps.items()])
 
 
-def _summarize(rate_hz: Any, rows, events, end: dict[str, Any] | None) -> RunSummary:
+def _summarize(rate_hz: Any, rows, events, end: dict[str, Any] | None,
+               recovered: dict[str, str] | None) -> RunSummary:
     acc = SummaryAccumulator(rate_hz=rate_hz)
     for row in rows:
         acc.add(row)
     for ev in events:
         acc.add_event(str(ev.get("kind", "")), str(ev.get("detail", "")),
                       t=ev.get("t"), tick=ev.get("tick"))
-    return _finish(acc, end)
+    return _finish(acc, end, recovered)
 
 
-def _finish(acc: SummaryAccumulator, end: dict[str, Any] | None) -> RunSummary:
+def _finish(acc: SummaryAccumulator, end: dict[str, Any] | None,
+            recovered: dict[str, str] | None = None) -> RunSummary:
     if end is None:
+        if recovered is not None:
+            return acc.finish(INCOMPLETE, "no /run/end: recovered from a recording cut short "
+                              f"({recovered.get('source', '?')}, "
+                              f"{recovered.get('ticks', '?')} ticks saved)")
         return acc.finish(INCOMPLETE, "no /run/end in the recording (cut short or still running)")
     status = end.get("status")
     if status not in SUMMARY_STATUSES:
@@ -298,9 +304,10 @@ def _rate(metadata: dict[str, Any]) -> float | None:
 def summarize_recording(rec: Recording) -> RunSummary:
     """The summary of a recording read by :func:`~dentibot.telemetry.reader.read_recording`.
 
-    Without ``/run/end`` (crash, cut file) the status is ``incomplete``.
+    Without ``/run/end`` (crash, cut file, file rewritten by ``dentibot recover``) the status
+    is ``incomplete``.
     """
-    return _summarize(_rate(rec.metadata), rec.rows, rec.events, rec.end)
+    return _summarize(_rate(rec.metadata), rec.rows, rec.events, rec.end, rec.recovered)
 
 
 def summarize_file(path: str | os.PathLike[str]) -> RunSummary:
@@ -309,10 +316,16 @@ def summarize_file(path: str | os.PathLike[str]) -> RunSummary:
 
     Raises TelemetryError if the file is missing or not an MCAP file.
     """
+    return summarize_stream(MessageStream(path))
+
+
+def summarize_stream(stream: MessageStream) -> RunSummary:
+    """:func:`summarize_file` over a :class:`MessageStream` not iterated yet; afterwards the
+    stream's ``complete``, ``recovered`` and ``problems`` say what the file was like."""
     acc: SummaryAccumulator | None = None
     events: list[dict[str, Any]] = []
     end: dict[str, Any] | None = None
-    for topic, obj in MessageStream(path):
+    for topic, obj in stream:
         if topic == "/tick":
             if acc is None:                      # no /run before the first row: no rate
                 acc = SummaryAccumulator()
@@ -327,7 +340,7 @@ def summarize_file(path: str | os.PathLike[str]) -> RunSummary:
     for ev in events:
         acc.add_event(str(ev.get("kind", "")), str(ev.get("detail", "")),
                       t=ev.get("t"), tick=ev.get("tick"))
-    return _finish(acc, end)
+    return _finish(acc, end, stream.recovered)
 
 
 def summary_json(summary: RunSummary) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import math
 import threading
 
 from dentibot.telemetry import default_row
@@ -24,6 +25,39 @@ def ramp_row(i: int, rate_hz: float = 500.0, **over) -> dict:
         lateness_us=float(i % 97), compute_us=120.0, overrun=(i % 1000 == 500))
     row.update(over)
     return row
+
+
+def real_row(i: int, rate_hz: float = 500.0) -> dict:
+    """A row as the runtime builds it while drilling (every field, simulator truths included,
+    full-precision floats that change every tick): the size and encoding cost of real rows."""
+    t = i / rate_hz
+    s, c = math.sin(0.7 * t), math.cos(0.3 * t)
+    return {
+        "t": t, "tick": i, "step": "4:drill", "state": "treating.drilling.feeding",
+        "q_deg": [-1.704 + 1e-3 * s, -9.932, 27.766000000000002 + 1e-4 * c, 1.187, 72.658,
+                  -2.071 + 1e-3 * s],
+        "qdot_cmd_deg_s": [0.3310737190635941 * s, -0.0736990846575737 * c,
+                           0.09363530481767193, -0.20300797735194284 * s,
+                           -0.07550897371559703, 0.3911142750132231 * c],
+        "tool_pose": [101.27237629281589 + s, 0.15245322048725884 * c,
+                      107.43665944582354 - 1e-3 * i, -178.8529042640768, -0.4544986455133137 * s,
+                      179.99624089151916],
+        "phantom_pose": [101.33305712777273, 1.8030844670175292e-14, 122.53395995108038,
+                         -180.0, 3.1805546814635168e-15, 180.0],
+        "wrench_s": [-0.64 * c, 0.36, 0.66 * s, 0.02025, -0.05775, -0.0495 * c],
+        "wrench_h": [0.01927773674531727 * s, -0.0051776619832822135 * c,
+                     -0.30859435221158016 - 0.01 * s, -0.0005828249870844632,
+                     -0.0009920114470123608 * c, -0.027277150427593346],
+        "f_d": [0.0, 0.0, 0.3307929187508018 + 0.01 * c, 0.0, 0.0, 0.0],
+        "fz_star_n": 0.3307929187508018 + 0.01 * c, "fz_n": 0.3307929187508018 + 0.01 * c,
+        "file_torque_mnm": 27.214425201031847 + 3.0 * s, "motor_current_a": 0.04126655810372048 * c,
+        "motor_rpm": 59.999999999999986, "depth_mm": 15.084386766995253 + 1e-5 * i,
+        "true_depth_mm": 15.096932049155638 + 1e-5 * i, "working_length_mm": 16.0,
+        "completeness": 0.958322647101977 * abs(c), "patient_moved": False,
+        "reversals": i // 5000, "fractured": False,
+        "events": ["working_length_reached"] if i % 5000 == 4999 else [],
+        "lateness_us": 0.0, "compute_us": 73.9110000722576 + s, "overrun": False,
+    }
 
 
 class GatedStream(io.BytesIO):

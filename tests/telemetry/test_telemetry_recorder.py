@@ -1,4 +1,4 @@
-"""McapRecorder: rows in = rows out, never blocks the caller, crash-safe, errors not lost."""
+"""McapRecorder: rows in = rows out, bounded risk (back-pressure, loud overflow), no lost error."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import errno
 import json
 import math
 import shutil
+import threading
 import time
 
 import numpy as np
@@ -15,6 +16,7 @@ from telemetry_helpers import GatedStream, ramp_row
 
 from dentibot.errors import ConfigError
 from dentibot.telemetry import McapRecorder, TelemetryError, json_schema, read_recording
+from dentibot.telemetry.recorder import TelemetryOverflow
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -80,28 +82,71 @@ def test_file_is_an_indexed_foxglove_ready_mcap(tmp_path):
     assert [row["tick"] for _lt, row in ticks] == list(range(300))
 
 
-def test_record_never_blocks_while_the_writer_is_stuck_in_io():
-    """The writer thread is held inside a write (disk stall); record() keeps returning and
-    the rows pile up in the queue, then all reach the file once the disk is back."""
+def _stuck_writer(max_wait_s: float) -> tuple[GatedStream, McapRecorder]:
+    """A recorder whose writer is provably stuck in a write (disk stall) after row 0."""
     stream = GatedStream()
-    rec = McapRecorder(stream, META, flush_interval_s=0.02)
+    rec = McapRecorder(stream, META, flush_interval_s=0.02, max_wait_s=max_wait_s)
     stream.hold()
     rec.record(ramp_row(0))
     stream.entered.wait(5.0)
     assert stream.entered.is_set()                 # the writer is now blocked in write()
-    written_before = rec.ticks_written
-    n = 3000
-    for i in range(1, n + 1):
+    return stream, rec
+
+
+def test_a_stuck_writer_holds_the_producer_at_the_budget_then_overflows_loudly():
+    """The writer is stuck in I/O: record() keeps returning until 100 ms of ticks are at
+    risk, then waits for room, and after max_wait_s drops the row and raises; nothing grows
+    without bound, and everything accepted reaches the file once the disk is back."""
+    stream, rec = _stuck_writer(max_wait_s=0.1)
+    budget = round(0.1 * RATE_HZ)                  # 100 ms of ticks at 500 Hz
+    assert rec.budget == budget == 50
+    accepted = 1                                   # row 0
+    for i in range(1, budget):
         rec.record(ramp_row(i))
-    assert rec.rows_queued == n + 1                # every call returned...
-    assert rec.ticks_written == written_before <= 1    # ...while nothing more was written
-    assert rec.queue_depth == n and rec.queue_depth_max >= n
+        accepted += 1
+    assert rec.rows_dropped == 0 and not rec.overflowed
+    raised = 0
+    for i in range(budget, budget + 3):
+        with pytest.raises(TelemetryOverflow, match=f"tick {i} dropped") as info:
+            rec.record(ramp_row(i))
+        raised += 1
+        assert info.value.rows_dropped == raised
+    assert accepted == budget and raised == 3
+    assert rec.rows_dropped == raised and rec.overflowed
+    assert rec.queue_depth <= budget and rec.queue_depth_max <= budget
+    assert rec.at_risk_max == budget
     stream.release()
+    rec.close("fault", "telemetry overflow")
+    assert rec.ticks_written == accepted
+    got = _read_bytes(stream.getvalue())
+    assert [r["tick"] for r in got] == list(range(accepted))
+
+
+def test_back_pressure_waits_for_the_writer_instead_of_dropping():
+    """A writer stuck for a while (shorter than max_wait_s): the producer's record() of the
+    tick past the budget returns only after the disk is back, and nothing is lost."""
+    stream, rec = _stuck_writer(max_wait_s=30.0)
+    for i in range(1, rec.budget):
+        rec.record(ramp_row(i))
+    released = threading.Event()
+
+    def release() -> None:
+        released.set()
+        stream.release()
+
+    timer = threading.Timer(0.2, release)
+    timer.start()
+    try:
+        rec.record(ramp_row(rec.budget))           # waits for room
+        assert released.is_set()                   # ...which came only with the release
+    finally:
+        timer.join()
+    n = 2000
+    for i in range(rec.budget + 1, n):
+        rec.record(ramp_row(i))
     rec.close("ok")
-    assert rec.ticks_written == n + 1
-    raw = stream.getvalue()
-    path_rows = _read_bytes(raw)
-    assert [r["tick"] for r in path_rows] == list(range(n + 1))
+    assert rec.backpressure_waits >= 1 and rec.rows_dropped == 0
+    assert [r["tick"] for r in _read_bytes(stream.getvalue())] == list(range(n))
 
 
 def _read_bytes(raw: bytes) -> list[dict]:
@@ -111,21 +156,6 @@ def _read_bytes(raw: bytes) -> list[dict]:
         p = Path(d) / "x.mcap"
         p.write_bytes(raw)
         return read_recording(p).rows
-
-
-def test_full_queue_drops_and_counts_instead_of_blocking():
-    stream = GatedStream()
-    rec = McapRecorder(stream, META, flush_interval_s=0.02, max_queue=10)
-    stream.hold()
-    rec.record(ramp_row(0))
-    stream.entered.wait(5.0)
-    assert stream.entered.is_set()
-    for i in range(1, 21):
-        rec.record(ramp_row(i))
-    assert rec.rows_dropped == 10 and rec.queue_depth == 10
-    stream.release()
-    rec.close("ok")
-    assert rec.ticks_written == 11
 
 
 def test_writer_death_is_reported_on_the_next_record():
