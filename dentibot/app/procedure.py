@@ -158,6 +158,8 @@ class Procedure:
         finally:
             self.gate.close(why)
             await rt.stop_devices()
+            for t in list(rt.unfinished_stops):   # a silent link's stop: given up here
+                t.cancel()
             if self.on_stopped is not None:
                 self.on_stopped(self.error)
 

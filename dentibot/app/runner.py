@@ -32,6 +32,7 @@ from dentibot.sim.ftsensor import FTSensorParams
 from dentibot.sim.nitifile import NiTiFile
 from dentibot.sim.world import WorldConfig
 from dentibot.telemetry.recorder import McapRecorder
+from dentibot.telemetry.schema import TelemetryError
 from dentibot.telemetry.summary import RunSummary, SummaryAccumulator
 
 log = structlog.get_logger("dentibot.protocol")
@@ -40,6 +41,10 @@ log = structlog.get_logger("dentibot.protocol")
 PRESHAPED = {"initial_apical_mm": CanalParams.target_apical_mm,
              "initial_taper": CanalParams.target_taper}
 EXIT_CODES = {"ok": 0, "fault": 3, "fracture": 4, "aborted": 130}
+#: The signals that stop a run safely (file stopped and withdrawn, arm stopped, recording
+#: finished), and the reason each gives.
+SIGNALS = {signal.SIGINT: "stopped by the operator (Ctrl-C)",
+           signal.SIGTERM: "terminated (SIGTERM)"}
 
 
 def world_config(p: Protocol) -> WorldConfig:
@@ -112,9 +117,13 @@ def step_duration_s(p: Protocol, step_name: str) -> float | None:
 class RunResult:
     summary: RunSummary
     recording: Path | None
+    #: the exit code of a run ended by a signal other than Ctrl-C (128 + its number)
+    signal_exit: int | None = None
 
     @property
     def exit_code(self) -> int:
+        if self.summary.status == "aborted" and self.signal_exit is not None:
+            return self.signal_exit
         return EXIT_CODES.get(self.summary.status, 1)
 
 
@@ -213,16 +222,22 @@ class ProtocolRunner:
         self._abort_reason = reason
 
     async def run(self, handle_sigint: bool = False) -> RunResult:
-        """Run the steps. With ``handle_sigint``, Ctrl-C calls :meth:`abort` (a safe stop
-        that still writes the recording and the summary) instead of cancelling the task."""
+        """Run the steps. With ``handle_sigint``, Ctrl-C (SIGINT) and SIGTERM call
+        :meth:`abort` (a safe stop that still writes the recording and the summary) instead of
+        ending the process; the exit code then says which (130, 143)."""
         if not handle_sigint:
             return await self._run_devices()
         loop = asyncio.get_running_loop()
-        loop.add_signal_handler(signal.SIGINT, self.abort)
+        for sig, why in SIGNALS.items():
+            loop.add_signal_handler(sig, self.abort, why)
         try:
-            return await self._run_devices()
+            result = await self._run_devices()
         finally:
-            loop.remove_signal_handler(signal.SIGINT)
+            for sig in SIGNALS:
+                loop.remove_signal_handler(sig)
+        if self._abort_reason == SIGNALS[signal.SIGTERM]:
+            result.signal_exit = 128 + signal.SIGTERM
+        return result
 
     async def _run_devices(self) -> RunResult:
         if self.devices is None:
@@ -267,6 +282,12 @@ class ProtocolRunner:
             await proc.safe_stop()
             self._close("aborted", self._abort_reason or "cancelled by the operator")
             raise
+        except Exception as exc:  # noqa: BLE001 - a fault of the run, not of its input
+            # (a device error the control task could not turn into a fault, the control task
+            # dying, the recording failing): stopped safely, reported as the run's fault
+            await proc.safe_stop()
+            why = proc.error or f"{type(exc).__name__}: {exc}"
+            return RunResult(self._close("fault", why), self.path)
         except BaseException as exc:
             await proc.safe_stop()
             self._close("fault", f"{type(exc).__name__}: {exc}")
@@ -274,17 +295,30 @@ class ProtocolRunner:
         return RunResult(self._close(status, reason), self.path)
 
     def _status(self) -> tuple[str, str]:
+        """The run's outcome. A fracture is what the controller detected (from the motor's
+        torque signature); on the built-in simulator the world's truth is added to the report
+        (never to the controller), saying whether the controller saw it."""
+        rt = self.rt
+        detected = next((c for c in rt.treatment.fault_causes
+                         if c.startswith("fracture_suspected")), None)
         w = self.world
         if w is not None and w.fractured is not None:
             f = w.fractured
+            seen = f"detected: {detected}" if detected else "not detected by the controller"
             return "fracture", (f"file fractured by {f.cause} at {f.t:.2f} s, "
-                                f"{f.torque_mnm:.1f} mNm, depth {f.depth_mm:.2f} mm")
-        if self.rt.state == "fault":
-            return "fault", "; ".join(self.rt.treatment.fault_causes)
+                                f"{f.torque_mnm:.1f} mNm, depth {f.depth_mm:.2f} mm ({seen})")
+        if detected is not None:
+            return "fracture", detected
+        if rt.state == "fault":
+            return "fault", "; ".join(rt.treatment.fault_causes)
         return "ok", ""
 
     def _close(self, status: str, reason: str) -> RunSummary:
         if self.recorder is not None:
-            self.recorder.close(status, reason)
+            try:
+                self.recorder.close(status, reason)
+            except TelemetryError as exc:     # the summary is still written and returned
+                status = "fault"
+                reason = f"{reason}; recording: {exc}" if reason else f"recording: {exc}"
         self.summary = self.acc.finish(status, reason)
         return self.summary

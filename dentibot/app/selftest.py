@@ -33,14 +33,26 @@ EXPECT: dict[str, tuple[tuple[str, ...], float | None]] = {
     "ft_saturation": (("fault",), 2.0),
     "ft_offset_drift": (("fault",), 4000.0),  # 1.5 N after 1.5 s, then persists 2 s
     "arm_disconnect": (("fault",), 2.0),
-    "arm_error": (("fault",), 4.0),           # the refused command, seen the next tick
+    "arm_error": (("fault",), 2.0),           # the refused command, latched in its tick
     "can_silence": (("fault",), 24.0),        # stale after 10 periods
     "emcy": (("fault",), 2.0),
     "bus_off": (("fault",), 2.0),
     "file_binding": (("treating.drilling.feeding", "treating.drilling.reversing"), 20.0),
     "patient_jerk": (("fault", "treating.patient_moved", "treating.drilling.feeding",
                       "treating.drilling.reversing"), 60.0),
+    "handpiece_disabled": (("fault",), 2.0),  # the enabled bit, read every tick
+    # the speed leaves the tolerance (30 % of 60 rpm) 4 ms after the power loss (10 ms speed
+    # loop), then 8 ms of persistence (observers.ObserverLimits) and the tick that notices
+    "handpiece_power_loss": (("fault",), 14.0),
+    "file_fracture": (("fault",), 8.0),       # 6 ms window of the torque signature + 1 tick
+    "foreign_spin": (("fault",), 14.0),       # as the power loss, the other way
+    "command_error": (("fault",), 2.0),       # the refused command, latched in its tick
+    "arm_half_open": (("fault",), 24.0),      # stale after 10 periods
+    "estop": (("fault",), 2.0),               # the aux input, read every tick
 }
+#: Longest the file may turn after the fault is detected (ms): the drive's speed loop brings
+#: 60 rpm to rest within 5 time constants (50 ms).
+FILE_STOP_MS = 50.0
 
 
 @dataclass
@@ -54,6 +66,7 @@ class FaultResult:
     samples_lost: int
     cause: str
     ok: bool
+    file_stopped_ms: float | None = None
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -79,9 +92,15 @@ async def run_fault(name: str, seed: int = 1, engage_s: float = 3.0, watch_s: fl
     def event(tick: int, kind: str, detail: str) -> None:
         recorder.event(kind, detail, t=tick * proc.runtime.ts, tick=tick)
 
+    file_rpm: list[float] = []          # the file's true speed at each tick (the judge's)
+
+    def record(row: dict) -> None:
+        recorder.record(row)
+        file_rpm.append(proc.world.handpiece.omega_rpm)
+
     proc = Procedure.simulated(
         WorldConfig(seed=seed), RuntimeConfig(plan=TreatmentPlan(orifice_gap_mm=2.0)),
-        sink=recorder.record, event_sink=event, devices=inject)
+        sink=record, event_sink=event, devices=inject)
     rt, w, fi = proc.runtime, proc.world, injector[0]
     try:
         async with proc:
@@ -105,6 +124,11 @@ async def run_fault(name: str, seed: int = 1, engage_s: float = 3.0, watch_s: fl
                        "; ".join(rt.treatment.fault_causes))
     rec = read_recording(path)
     ticks = [r["tick"] for r in rec.rows]
+    stopped_ms = None
+    if final == "fault" and detected is not None:
+        at_rest = next((k for k in range(detected, len(file_rpm)) if abs(file_rpm[k]) < 1.0),
+                       None)
+        stopped_ms = None if at_rest is None else (at_rest - detected) * rt.ts * 1e3
     lost = rt.ticks - len(ticks) + (0 if ticks == list(range(len(ticks))) else 1)
     if tmp is not None:
         tmp.cleanup()
@@ -116,8 +140,10 @@ async def run_fault(name: str, seed: int = 1, engage_s: float = 3.0, watch_s: fl
     safe = final in states and (final != "fault" or (w.handpiece.cmd_rpm == 0.0
                                                      and arm_speed < 1.0))
     in_time = bound is None or (detected_ms is not None and detected_ms <= bound)
+    stopped = final != "fault" or (stopped_ms is not None and stopped_ms <= FILE_STOP_MS)
     return FaultResult(name, detected_ms, reaction, final, w.handpiece.omega_rpm, arm_speed,
-                       lost, "; ".join(rt.treatment.fault_causes), safe and in_time and lost == 0)
+                       lost, "; ".join(rt.treatment.fault_causes),
+                       safe and in_time and stopped and lost == 0, stopped_ms)
 
 
 async def run_catalogue(faults=FAULTS, seed: int = 1) -> list[FaultResult]:

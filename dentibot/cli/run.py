@@ -2,7 +2,8 @@
 
 A progress bar per step with the live key figures (state, depth / working length, file torque
 against its limit, force), then the result table (or ``--json``). Exit status: 0 ok,
-3 fault, 4 fracture, 130 aborted (Ctrl-C), 2 bad input (nothing started).
+3 fault, 4 fracture, 130 aborted (Ctrl-C), 143 terminated (SIGTERM; stopped as safely as
+Ctrl-C), 2 bad input (nothing started).
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """``dentibot selftest faults``: the fault catalogue, each injected while drilling.
 
-Prints a table (fault, detection time, reaction, final state, samples lost) or, with
-``--json``, a list of objects with ``fault``, ``detected_ms``, ``final_state``,
-``samples_lost`` (and more). ``--wire`` adds the faults injected on the wire simulators (real
+Prints a table (fault, detection time, how long the file turned after it, reaction, final
+state, samples lost) or, with ``--json``, a list of objects with ``fault``, ``detected_ms``,
+``file_stopped_ms``, ``final_state``, ``samples_lost`` (and more). ``--wire`` adds the faults injected on the wire simulators (real
 drivers, real time). Exit status 1 if any fault did not end safely in time with every sample.
 """
 
@@ -31,11 +31,12 @@ def cmd_faults(args: argparse.Namespace) -> int:
         print(json.dumps([r.to_dict() for r in results], indent=2))
     else:
         t = Table(title="DentiBot fault catalogue")
-        for col in ("fault", "detected (ms)", "reaction", "final state", "samples lost",
-                    "ok"):
+        for col in ("fault", "detected (ms)", "file stopped (ms)", "reaction", "final state",
+                    "samples lost", "ok"):
             t.add_column(col)
         for r in results:
             t.add_row(r.fault, "-" if r.detected_ms is None else f"{r.detected_ms:.0f}",
+                      "-" if r.file_stopped_ms is None else f"{r.file_stopped_ms:.0f}",
                       r.reaction, r.final_state, str(r.samples_lost), "yes" if r.ok else "NO")
         console = Console()
         console.print(t)

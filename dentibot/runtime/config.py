@@ -68,6 +68,12 @@ class Thresholds:
     # assumption: a real patient movement is followed within 2 s (the arm yields at
     # 6.25 mm/s per N); a force that persists longer is sensor drift or a collision -> fault.
     patient_persist_s: float = 2.0
+    # assumption: following a real movement relieves the force: after 0.3 s of following and
+    # 2 mm of measured tip travel the force is below what triggered the following (the arm
+    # has caught up with the tooth). A force that is not relieved while the arm travels is
+    # not a contact force (an F/T offset drift): fault, before the tip sweeps the canal.
+    drift_window_s: float = 0.3
+    drift_travel_mm: float = 2.0
     # assumption: hard file-torque limit 90 % of the 62 mNm strength: stop and reverse.
     torque_limit_mnm: float = 0.9 * FILE_TORQUE_LIMIT_MNM
     # assumption: apical force cap 3 N along the file (retract above it).

@@ -20,23 +20,23 @@ import structlog
 
 from dentibot.control.admittance import SELF_ALIGNMENT, AdmittanceController
 from dentibot.control.kinematics import Meca500
-from dentibot.control.tick import admittance_command, forward_chain
+from dentibot.control.tick import forward_chain
 from dentibot.control.wrench import GravityModel
 from dentibot.errors import DentibotError, DeviceFault
 from dentibot.runtime.clock import Clock, DeadlineStats, quiet_collector
+from dentibot.runtime.actuate import arm_command, stop_all
 from dentibot.runtime.config import RuntimeConfig
 from dentibot.runtime.estimate import Devices, Estimate, MotorView, estimate
 from dentibot.runtime.rows import telemetry_row
 from dentibot.runtime.supervisor import Finding, Supervisor
 from dentibot.runtime.tool import reference_transforms, tool_matrix
-from dentibot.states.behaviours import Context, feed_force_n, make_behaviours
+from dentibot.states.behaviours import Context, make_behaviours
 from dentibot.states.modes import MODES, Mode, admittance_params, send_file_command
 from dentibot.states.strategies import make_strategy
 from dentibot.states.treatment import Refusal, Treatment
 
 log = structlog.get_logger("dentibot.runtime")
 
-_ZERO6 = np.zeros(6)
 #: Events that are recorded but are not triggers of the state machine.
 NOTES = frozenset({"tcp_point", "inputs_invalid", "file_stopped"})
 
@@ -59,7 +59,7 @@ class Runtime:
         self.R_6_H = np.reshape(config.tool.R_6_H, (3, 3))
         self.kin = Meca500(tool=tool_matrix(self.R_6_H, config.tool.tip_6_mm))
         self.admittance = AdmittanceController(self.kin, SELF_ALIGNMENT, self.ts)
-        self._speed_limits = [float(x) for x in self.kin.joint_speed_limits_deg_s]
+        self.speed_limits = [float(x) for x in self.kin.joint_speed_limits_deg_s]
         self.treatment = Treatment(passes_left=config.plan.passes - 1)
         self.gravity: GravityModel | None = None
         self._to_h: dict = {}
@@ -84,8 +84,11 @@ class Runtime:
         self.mode: Mode = MODES["idle"]
         self._ref = None
         self.file_cmd = None
-        self._pending: list[tuple[str, str | None]] = []
+        #: events for the next tick (a command the supervisor refused)
+        self.pending: list[tuple[str, str | None]] = []
         self._stop = asyncio.Event()
+        #: stop commands still waiting for their device's answer (a silent link)
+        self.unfinished_stops: set[asyncio.Task] = set()
 
     def set_gravity(self, gravity: GravityModel) -> None:
         """Use ``gravity`` (a load calibration result) for compensation from now on."""
@@ -111,13 +114,8 @@ class Runtime:
         self._note("fault", cause)
 
     async def stop_devices(self) -> None:
-        """Stop the file first, then the arm; a device that is itself the fault must not keep the
-        other from stopping."""
-        for device in (self.dev.motor, self.dev.arm):
-            try:
-                await device.stop()
-            except Exception as exc:  # noqa: BLE001 - the stop of the other device must go on
-                log.warning("stop command failed", device=type(device).__name__, error=str(exc))
+        """File and arm stopped at once, bounded (:func:`~dentibot.runtime.actuate.stop_all`)."""
+        await stop_all(self.dev.motor, self.dev.arm, self.unfinished_stops)
         self.file_cmd = ("stop",)
 
     def configure(self, *, plan=None, handpiece=None, restart_strategy: bool = False) -> None:
@@ -166,8 +164,8 @@ class Runtime:
         t_start = time.perf_counter()
         k = self.ticks
         tr = self.treatment
-        events: list[tuple[str, str | None]] = self._pending
-        self._pending = []
+        events: list[tuple[str, str | None]] = self.pending
+        self.pending = []
         # 1. read + supervise
         est, findings = await self._read_and_estimate(k)
         for f in findings:
@@ -189,13 +187,19 @@ class Runtime:
                 continue
             refusal = await tr.fire(trigger, cause)
             self._note(trigger, (cause or "") if refusal is None else str(refusal))
-        # 4. entry actions
-        if tr.state != self._state:
-            await self._enter(tr.state, est)
-        # 5. control law and commands
+        # 4. entry actions, 5. control law and commands; a device error latches the fault now
         qdot = None
-        if est is not None:
-            qdot = await self._command(est)
+        try:
+            if tr.state != self._state:
+                await self._enter(tr.state, est)
+            if est is not None:
+                qdot = await arm_command(self, est)
+        except (DentibotError, OSError) as exc:
+            qdot, cause = None, f"device_command: {type(exc).__name__}: {exc}"
+            events.append(("fault", cause))
+            await tr.fire("fault", cause)
+            self._note("fault", cause)
+            await self._enter(tr.state, est)
         # 6. telemetry: every tick, also when the inputs failed (then the last valid estimate
         # is repeated and the row's events say "inputs_invalid")
         self.ticks = k + 1
@@ -221,6 +225,9 @@ class Runtime:
         if any(f.kind.startswith("nonfinite") for f in findings):
             return None, findings
         est = self._estimate(np.asarray(js.q_deg, dtype=float), w.as_array(), m)
+        if not findings:
+            findings = self.supervisor.observe(self.file_cmd, m, est,
+                                               self.mode.arm == "admittance")
         if not findings and self.gravity is not None:
             turning = self.mode.file in ("forward", "align") and abs(m.velocity_rpm) > 5.0
             findings = self.supervisor.check_estimate(
@@ -262,32 +269,6 @@ class Runtime:
                     est.wrench_h, est.force_norm_n = est2.wrench_h, est2.force_norm_n
         self.behaviours[state].enter(self.ctx, self, est, prev)
         self.file_cmd = await send_file_command(self.dev.motor, mode, self.cfg, self.file_cmd)
-
-    async def _command(self, est: Estimate):
-        mode = self.mode
-        arm = self.dev.arm
-        if mode.arm == "stop":
-            return None
-        if mode.arm == "script":
-            target = self.ctx.script_target
-            if target is not None:
-                await arm.move_joints(target)
-            return None
-        if mode.arm == "hold":
-            await arm.move_joints_vel(_ZERO6)
-            return _ZERO6
-        cmd = admittance_command(self.admittance, est.q_deg, est.wrench_h,
-                                 feed_force_n(mode, self.ctx, self.cfg.plan), self.chain)
-        bad = self.supervisor.check_command(cmd.qdot_deg_s, cmd.twist, self._speed_limits)
-        if bad:
-            self._pending.extend(("fault", str(f)) for f in bad)
-            await arm.move_joints_vel(_ZERO6)
-            return _ZERO6
-        try:
-            await arm.move_joints_vel(cmd.qdot_deg_s)
-        except DentibotError as exc:
-            self._pending.append(("fault", f"arm refused the command: {exc}"))
-        return cmd.qdot_deg_s
 
     def _note(self, kind: str, detail: str) -> None:
         self.events_log.append((self.ticks, kind, detail))

@@ -16,6 +16,9 @@ Estimates (after step 2 of the tick):
 Commands (before they are sent): joint speed above the Meca500 limits, tool-tip speed above
 the cap.
 
+Observers (:mod:`dentibot.runtime.observers`, what a real device can report): the handpiece
+against its command, file fracture from the torque signature, the tip's measured speed.
+
 Each finding names its cause, the value and the limit; the control task turns it into the
 latched ``fault`` (arm and file stopped in the same tick).
 """
@@ -28,17 +31,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from dentibot.io.interfaces import WRENCH_SATURATED
+from dentibot.runtime.finding import Finding
+from dentibot.runtime.observers import (
+    FractureObserver,
+    ObserverLimits,
+    SpindleObserver,
+    TipSpeedObserver,
+)
 
-
-@dataclass(frozen=True)
-class Finding:
-    """A fault cause: ``kind`` (short key), ``detail`` (cause, value, limit)."""
-
-    kind: str
-    detail: str
-
-    def __str__(self) -> str:
-        return f"{self.kind}: {self.detail}"
+__all__ = ["Finding", "Freshness", "Supervisor", "SupervisorLimits", "non_finite"]
 
 
 @dataclass(frozen=True)
@@ -115,6 +116,21 @@ class Supervisor:
         self.freshness = Freshness(stale_periods)
         self._last_force: np.ndarray | None = None
         self._disagree_ticks = 0
+        olim = ObserverLimits()
+        self.spindle = SpindleObserver(ts, olim)
+        self.fracture = FractureObserver(ts, olim)
+        self.tip_speed = TipSpeedObserver(ts, olim)
+
+    def observe(self, file_cmd, m, est, force_controlled: bool) -> list[Finding]:
+        """The observers (:mod:`dentibot.runtime.observers`): the handpiece against its
+        command, file fracture, and (while the arm follows forces: the file near the patient)
+        the tip's measured speed."""
+        forward = file_cmd[1] if file_cmd is not None and file_cmd[0] == "vel" \
+            and file_cmd[1] > 0.0 else None
+        return [*self.spindle.check(file_cmd, m.velocity_rpm, m.enabled, est.file_torque_mnm),
+                *self.fracture.check(forward, m.velocity_rpm, est.file_torque_mnm,
+                                     est.depth_mm),
+                *self.tip_speed.check(est.tip_0 if force_controlled else None)]
 
     def check_inputs(self, k: int, js, w, m, aux) -> list[Finding]:
         out: list[Finding] = []

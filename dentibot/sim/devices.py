@@ -67,8 +67,8 @@ class SimHandpiece:
     async def read(self) -> MotorState:
         w = self.world
         h = w.handpiece
-        fault = None if w.fractured is None else f"file fractured ({w.fractured.cause})"
-        return MotorState(w.t, w.steps, h.omega_rpm, h.pos_deg, h.current_a, h.enabled, fault)
+        # a real drive cannot know that the file broke: only its own faults are reported
+        return MotorState(w.t, w.steps, h.omega_rpm, h.pos_deg, h.current_a, h.enabled, h.fault)
 
     async def set_velocity(self, rpm: float) -> None:
         self.world.handpiece.set_velocity(rpm)

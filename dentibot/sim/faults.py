@@ -17,11 +17,21 @@
 ``bus_off``           the CAN controller goes bus-off (read raises ``DeviceFault``)
 ``file_binding``      debris packs the flutes: +30 mNm of resistance at once
 ``patient_jerk``      the patient jerks the tooth 5 mm sideways at 100 mm/s
+``handpiece_disabled``  the drive disables its output silently (no EMCY; statusword says so)
+``handpiece_power_loss``  the motor loses its power: it coasts down, the drive still says
+                      enabled (no EMCY)
+``file_fracture``     the file breaks in the canal (nothing tells the controller: no oracle)
+``foreign_spin``      a second master on the CAN bus commands the drive to 150 rpm
+``command_error``     the arm's link refuses every command (reads still answer)
+``arm_half_open``     the arm's link goes half-open: no new joint samples, and a stop is
+                      never acknowledged (the driver waits 2 s for it)
+``estop``             the operator presses the emergency stop (aux input)
 ====================  ======================================================================
 """
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import math
 
@@ -32,7 +42,10 @@ from dentibot.sim.world import World
 
 FAULTS = ("ft_packet_loss", "ft_delay", "ft_stream_stop", "ft_nan", "ft_saturation",
           "ft_offset_drift", "arm_disconnect", "arm_error", "can_silence", "emcy", "bus_off",
-          "file_binding", "patient_jerk")
+          "file_binding", "patient_jerk", "handpiece_disabled", "handpiece_power_loss",
+          "file_fracture", "foreign_spin", "command_error", "arm_half_open", "estop")
+#: How long a half-open arm link keeps a stop command waiting for its acknowledgement (s).
+HALF_OPEN_STOP_S = 2.0
 
 
 class _Jerk:
@@ -78,14 +91,28 @@ class _FaultyFT(_Wrapped):
 
 class _FaultyArm(_Wrapped):
     async def read(self):
-        if self.fi.active("arm_disconnect"):
+        fi = self.fi
+        if fi.active("arm_disconnect"):
             raise DeviceFault("meca500", "control link lost (connection reset by peer)")
-        return await self.inner.read()
+        if fi.active("arm_half_open") and fi.held_arm is not None:
+            return fi.held_arm
+        fi.held_arm = await self.inner.read()
+        return fi.held_arm
 
     async def move_joints_vel(self, qdot_deg_s) -> None:
         if self.fi.active("arm_disconnect"):
             raise DeviceFault("meca500", "control link lost (connection reset by peer)")
+        if self.fi.active("command_error"):
+            raise DeviceFault("meca500", "command not delivered (socket write failed)")
+        if self.fi.active("arm_half_open"):
+            return                       # written into a link nobody reads
         await self.inner.move_joints_vel(qdot_deg_s)
+
+    async def stop(self) -> None:
+        if self.fi.active("arm_half_open"):
+            await asyncio.sleep(HALF_OPEN_STOP_S)
+            raise DeviceFault("meca500", f"no answer to the stop within {HALF_OPEN_STOP_S} s")
+        await self.inner.stop()
 
 
 class _FaultyMotor(_Wrapped):
@@ -116,6 +143,7 @@ class FaultInjector:
         self.t0 = 0.0
         self.held_ft: Wrench | None = None
         self.held_motor = None
+        self.held_arm = None
         self.ft_hold_ticks = 0
 
     def active(self, name: str) -> bool:
@@ -139,4 +167,15 @@ class FaultInjector:
             w.canal.debris_mm3 += 1.0
         elif name == "patient_jerk":
             w.motion = _Jerk(w.motion, w.t)
+        elif name == "handpiece_disabled":
+            w.handpiece.enabled = False
+            w.handpiece.stop()
+        elif name == "handpiece_power_loss":
+            w.handpiece.stop()           # coasts down; the drive still reports enabled
+        elif name == "file_fracture":
+            w.fracture_now("injected")
+        elif name == "foreign_spin":
+            w.handpiece.set_velocity(150.0)
+        elif name == "estop":
+            w.estop = True
         self.faults.add(name)

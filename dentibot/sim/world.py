@@ -152,6 +152,14 @@ class World:
         """(orifice point, unit direction of the straight canal part), both in {0}."""
         return self.phantom_origin_0(), self.from_phantom(self.canal.t0, point=False)
 
+    def fracture_now(self, cause: str) -> None:
+        """The file breaks now (fault injection): from the next step the canal holds the
+        broken tip and nothing resists the stub."""
+        if self.fractured is None:
+            self.fractured = FileFractured(cause, self.t, abs(self.handpiece.torque_mnm),
+                                           self.interaction.depth_mm)
+            self.interaction = Interaction()
+
     # ------------------------------------------------------------------ stepping
     def step(self) -> None:
         """Advance the world by exactly one period ``ts``."""

@@ -13,6 +13,7 @@ counters). Events are ``(trigger, cause)`` pairs handed to the state machine.
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -200,15 +201,29 @@ class Reversing(Drilling):
 
 class PatientMoved(Behaviour):
     """Fig 5.6: file stopped, fz = 0, the arm follows; released when the force stays below the
-    release threshold long enough; a force that persists while the arm follows is not a
-    patient (sensor drift or a collision): a fault."""
+    release threshold long enough; a force that persists while the arm follows, or that the
+    arm's measured travel does not relieve, is not a patient (sensor drift or a collision): a
+    fault."""
 
     def enter(self, ctx, rt, est, prev):
         self.release_ticks = 0
         self.persist_ticks = 0
+        self.ticks = 0
+        self.f0 = est.force_norm_n if est is not None else math.inf
+        self.p0 = est.tip_0 if est is not None else None
 
     def events(self, ctx, rt, est):
         th = rt.cfg.thresholds
+        self.ticks += 1
+        if self.p0 is None:
+            self.p0 = est.tip_0
+        travel = math.dist(est.tip_0, self.p0)
+        if self.ticks * rt.ts >= th.drift_window_s and travel > th.drift_travel_mm and \
+                est.force_norm_n >= self.f0:
+            return [("fault", (f"force {est.force_norm_n:.2f} N not relieved after the arm "
+                               f"followed it {travel:.1f} mm in {self.ticks * rt.ts:.2f} s "
+                               f"(it was {self.f0:.2f} N): F/T offset drift suspected, not a "
+                               "patient movement"))]
         if est.force_norm_n < th.patient_release_n:
             self.release_ticks += 1
             self.persist_ticks = 0

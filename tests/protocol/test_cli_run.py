@@ -40,7 +40,9 @@ steps:
 
 
 @pytest.mark.timeout(120)
-def test_ctrl_c_stops_safely_and_keeps_the_recording(tmp_path):
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)],
+                         ids=["SIGINT", "SIGTERM"])
+def test_a_signal_stops_safely_and_keeps_the_recording(tmp_path, sig, code):
     rec = tmp_path / "run.mcap"
     protocol = tmp_path / "long-drill.yaml"
     protocol.write_text(LONG_DRILL)
@@ -55,10 +57,10 @@ def test_ctrl_c_stops_safely_and_keeps_the_recording(tmp_path):
     while time.monotonic() < deadline and proc.poll() is None and not rec.exists():
         time.sleep(0.05)
     time.sleep(3.0)
-    assert proc.poll() is None, "the run ended before Ctrl-C"
-    proc.send_signal(signal.SIGINT)
+    assert proc.poll() is None, "the run ended before the signal"
+    proc.send_signal(sig)
     stdout, stderr = proc.communicate(timeout=60)
-    assert proc.returncode == 130, stderr[-2000:]
+    assert proc.returncode == code, stderr[-2000:]
     summary = json.loads(stdout)
     assert summary["status"] == "aborted"
     r = read_recording(rec)
@@ -72,3 +74,8 @@ def test_ctrl_c_stops_safely_and_keeps_the_recording(tmp_path):
     assert max(abs(x) for x in last["qdot_cmd_deg_s"]) == 0.0
     ticks = [row["tick"] for row in r.rows]
     assert ticks == list(range(len(ticks)))
+    # once withdrawing, never back to drilling (the treatment ends with the safe stop)
+    states = [row["state"] for row in r.rows]
+    first_out = states.index("treating.retracting", max(i for i, st in enumerate(states)
+                                                         if st.startswith("treating.drilling")))
+    assert not any(st.startswith("treating.drilling") for st in states[first_out:])

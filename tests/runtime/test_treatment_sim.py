@@ -297,7 +297,7 @@ async def test_a_file_bound_while_retracting_is_withdrawn_without_turning():
 async def test_the_runtime_runs_the_tick_chain_of_control_tick(monkeypatch):
     """What the control-tick benchmark times (dentibot.control.tick) is what the runtime runs:
     every admittance tick goes through its functions, and their output is what the arm gets."""
-    import dentibot.runtime.control_task as ct
+    import dentibot.runtime.actuate as ct
     import dentibot.runtime.estimate as estimate
     from dentibot.control import tick
 

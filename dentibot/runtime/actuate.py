@@ -1,0 +1,72 @@
+"""Step 5 of the tick (docs/architecture.md, "The tick"): the arm's command of the state's
+mode, and the fault reaction that stops the file and the arm.
+
+A command a device refuses or cannot deliver raises; the control task turns that into the
+latched fault of the same tick (:meth:`~dentibot.runtime.control_task.Runtime.tick`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+import structlog
+
+from dentibot.control.tick import admittance_command
+from dentibot.states.behaviours import feed_force_n
+
+log = structlog.get_logger("dentibot.runtime")
+
+_ZERO6 = np.zeros(6)
+#: Longest the fault reaction waits for the devices to take their stop commands (s): five
+#: control periods. A device that has not answered by then (a half-open link waits seconds for
+#: its acknowledgement) finishes in the background while the loop goes on ticking.
+STOP_BOUND_S = 0.01
+
+
+async def _stop(device) -> None:
+    try:
+        await device.stop()
+    except Exception as exc:  # noqa: BLE001 - the stop of the other device must go on
+        log.warning("stop command failed", device=type(device).__name__, error=str(exc))
+
+
+async def stop_all(motor, arm, unfinished: set[asyncio.Task]) -> None:
+    """Stop the file and the arm at once: both stop commands are issued (the file's first)
+    before either is awaited, and the reaction waits at most :data:`STOP_BOUND_S`; neither a
+    failing nor a silent device keeps the other from stopping or the loop from ticking. A stop
+    still waiting for its answer goes to ``unfinished`` (whoever ends the loop cancels it)."""
+    tasks = [asyncio.ensure_future(_stop(d)) for d in (motor, arm)]
+    _, pending = await asyncio.wait(tasks, timeout=STOP_BOUND_S)
+    for t in pending:
+        unfinished.add(t)
+        t.add_done_callback(unfinished.discard)
+        log.warning("stop command not acknowledged in time: left to finish",
+                    bound_s=STOP_BOUND_S)
+
+
+async def arm_command(rt, est):
+    """Send the arm what the state's mode wants; returns the joint velocities commanded (None
+    when the arm is stopped or scripted). Commands the supervisor refuses are replaced by a
+    hold, and the refusal becomes a fault of the next tick."""
+    mode = rt.mode
+    arm = rt.dev.arm
+    if mode.arm == "stop":
+        return None
+    if mode.arm == "script":
+        target = rt.ctx.script_target
+        if target is not None:
+            await arm.move_joints(target)
+        return None
+    if mode.arm == "hold":
+        await arm.move_joints_vel(_ZERO6)
+        return _ZERO6
+    cmd = admittance_command(rt.admittance, est.q_deg, est.wrench_h,
+                             feed_force_n(mode, rt.ctx, rt.cfg.plan), rt.chain)
+    bad = rt.supervisor.check_command(cmd.qdot_deg_s, cmd.twist, rt.speed_limits)
+    if bad:
+        rt.pending.extend(("fault", str(f)) for f in bad)
+        await arm.move_joints_vel(_ZERO6)
+        return _ZERO6
+    await arm.move_joints_vel(cmd.qdot_deg_s)
+    return cmd.qdot_deg_s
