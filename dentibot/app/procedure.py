@@ -147,6 +147,7 @@ class Procedure:
         rt = self.runtime
         why = "the procedure was stopped"
         try:
+            await rt.prepare()
             await self.gate.run_actions()
             await rt.run(between=self.gate.between)
         except asyncio.CancelledError:

@@ -19,14 +19,28 @@ dropped link is re-opened every ``reconnect_period_s`` by the same task; malform
 counted and logged (on change, not at the poll rate) and never stop the task.
 
 Host watchdog (map 1.1): on a 1.1+ device, ``connect()`` (and every reconnection) writes
-``watchdog_ms`` to HR 7 and the poll task writes a new counter to HR 6 every quarter of it, so
-the device holds the platform and lights FAULT when DentiBot dies or the link breaks for
-longer than that. A 1.0 device is left as it is.
+``watchdog_ms`` to HR 7 and a counter to HR 6, and the poll task writes both again (one FC16
+of HR 6-7: a new counter feeds the watchdog, the time re-arms it) every quarter of the
+watchdog time, so the device holds the platform, lights FAULT and opens its host-lost output
+(in the clinic's safety chain: the handpiece drive's STO) when DentiBot dies or the link
+breaks for longer than that. Modbus TCP has no authentication and any client may write HR 6-7:
+a second client that switched the watchdog off (``watchdog_ms`` = 0), re-timed it, or fed it
+(hiding this host's death) would go unnoticed by a driver that only writes. So every poll
+period the driver also reads HR 6-7 back (FC3) before any write of its own, and a value it did
+not write latches :class:`WatchdogOverwritten`: ``read()`` raises it until
+:meth:`AuxModbusDriver.clear_watchdog_fault` (the operator's reset), while the next feed
+restores the registers. A 1.0 device is left as it is.
+
+Time bounds: ``connect()`` as a whole takes at most ``connect_timeout_s`` (TCP connection,
+identification, watchdog arming, first poll) or raises
+:class:`~dentibot.io.interfaces.ConnectTimeout` naming the address; every request is bounded
+by ``request_timeout_s`` (pymodbus's timeout, no retries), so a peer that accepts the
+connection and never answers is a fault, never a hang.
 
 Counters: ``polls`` (requests sent), ``received`` (well-formed answers), ``unchanged`` (answers
 with the same heartbeat), ``errors`` (failed polls), ``lost`` (poll periods skipped because a
 poll or the event loop overran), ``reconnects``, ``writes``, ``feeds`` (watchdog writes);
-``seq`` is the sample count.
+``readbacks`` (watchdog read-backs); ``seq`` is the sample count.
 """
 
 from __future__ import annotations
@@ -56,9 +70,30 @@ from dentibot.io.aux_registers import (
     span,
     version_text,
 )
-from dentibot.io.interfaces import AuxState
+from dentibot.io.interfaces import AuxState, ConnectTimeout
 
 log = structlog.get_logger(__name__)
+
+
+class WatchdogOverwritten(DeviceFault):
+    """The host watchdog registers (HR 6-7) hold values this driver did not write: another
+    Modbus client changed them (switched the watchdog off, re-timed it, or fed it). Latched
+    until :meth:`AuxModbusDriver.clear_watchdog_fault`. ``found`` and ``expected`` are the
+    (host_watchdog, watchdog_ms) pairs."""
+
+    def __init__(self, address: str, found: tuple[int, int], expected: tuple[int, int]) -> None:
+        self.found, self.expected = found, expected
+        what = []
+        if found[1] != expected[1]:
+            what.append(f"watchdog_ms (HR 7) = {found[1]}, written {expected[1]}"
+                        + (" (watchdog OFF)" if found[1] == 0 else ""))
+        if found[0] != expected[0]:
+            what.append(f"host_watchdog (HR 6) = {found[0]}, written {expected[0]} "
+                        "(someone else feeds it)")
+        super().__init__(DEVICE, f"{address}: host watchdog overwritten by another Modbus "
+                                 f"client: {'; '.join(what)}; restored at the next feed. "
+                                 "Modbus TCP has no authentication: the aux I/O network must "
+                                 "have DentiBot as its only client")
 
 
 def _exception_text(response) -> str:
@@ -82,15 +117,17 @@ class AuxModbusDriver:
         reconnect_period_s: pause between attempts to re-open a dropped link (0.5 s).
         watchdog_ms: host watchdog time armed on a 1.1+ device (200 ms = 20 poll periods;
             0 leaves it off).
+        connect_timeout_s: bound on the whole ``connect()`` (1.0 s).
     """
 
     def __init__(self, host: str = "192.168.0.50", port: int = 502, device_id: int = 1,
                  poll_period_s: float = 0.01, stale_after_s: float = 0.1,
                  request_timeout_s: float = 0.2, reconnect_period_s: float = 0.5,
-                 watchdog_ms: int = 200) -> None:
+                 watchdog_ms: int = 200, connect_timeout_s: float = 1.0) -> None:
         for field, v in (("poll_period_s", poll_period_s), ("stale_after_s", stale_after_s),
                          ("request_timeout_s", request_timeout_s),
-                         ("reconnect_period_s", reconnect_period_s)):
+                         ("reconnect_period_s", reconnect_period_s),
+                         ("connect_timeout_s", connect_timeout_s)):
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"aux_modbus.{field}", v, "a positive number of seconds")
         if not (isinstance(device_id, int) and 0 <= device_id <= 255):
@@ -104,12 +141,16 @@ class AuxModbusDriver:
         self.stale_after_s = float(stale_after_s)
         self.request_timeout_s = float(request_timeout_s)
         self.reconnect_period_s = float(reconnect_period_s)
+        self.connect_timeout_s = float(connect_timeout_s)
         self.watchdog_ms = check_watchdog_ms(watchdog_ms)
         #: feed the watchdog every this many polls (a quarter of its time)
         self._feed_every = max(1, int(watchdog_ms / 4000.0 / self.poll_period_s))
         self._watchdog_on = False
         self.polls = self.received = self.unchanged = self.errors = self.lost = 0
-        self.reconnects = self.writes = self.seq = self.feeds = 0
+        self.reconnects = self.writes = self.seq = self.feeds = self.readbacks = 0
+        #: why the watchdog registers were found overwritten (latched), or None
+        self.watchdog_fault: WatchdogOverwritten | None = None
+        self._fed_value: int | None = None      # the host_watchdog value last written
         #: (magic, map_version) read at connect.
         self.identity: tuple[int, int] | None = None
         self._client: AsyncModbusTcpClient | None = None
@@ -135,21 +176,36 @@ class AuxModbusDriver:
         self._client = AsyncModbusTcpClient(
             self.host, port=self.port, name=DEVICE, timeout=self.request_timeout_s,
             retries=0, reconnect_delay=0)
+        stage = ["TCP connection"]
         try:
-            if not await self._client.connect():
-                raise DeviceFault(DEVICE, f"cannot connect to {self.host}:{self.port}")
-            self.identity = await self._check_identity()
-            self._link_up = True
-            await self._arm_watchdog()
-            await self._poll_once()
-            if self._last_error is not None:
-                raise DeviceFault(DEVICE, f"first poll failed: {self._last_error}")
+            await asyncio.wait_for(self._open(stage), self.connect_timeout_s)
+        except TimeoutError:
+            await self._drop_client()
+            raise ConnectTimeout(DEVICE, self.address, stage[0],
+                                 self.connect_timeout_s) from None
         except BaseException:
             await self._drop_client()
             raise
         self._task = asyncio.create_task(self._run(), name=f"{DEVICE}-poll")
         log.info("aux_modbus.connected", host=self.host, port=self.port,
                  device_id=self.device_id, map_version=version_text(self.identity[1]))
+
+    @property
+    def address(self) -> str:
+        return f"{self.host}:{self.port}"
+
+    async def _open(self, stage: list[str]) -> None:
+        if not await self._client.connect():
+            raise DeviceFault(DEVICE, f"cannot connect to {self.address}")
+        stage[0] = "answer to the identification read (input registers 0-1)"
+        self.identity = await self._check_identity()
+        self._link_up = True
+        stage[0] = "answer arming the host watchdog (holding registers 6-7)"
+        await self._arm_watchdog()
+        stage[0] = "answer to the first input-register poll"
+        await self._poll_once()
+        if self._last_error is not None:
+            raise DeviceFault(DEVICE, f"{self.address}: first poll failed: {self._last_error}")
 
     async def close(self) -> None:
         """Stop polling and close the link; idempotent."""
@@ -186,20 +242,21 @@ class AuxModbusDriver:
         try:
             rr = await self._client.read_input_registers(0, count=2, device_id=self.device_id)
         except ModbusException as exc:
-            raise DeviceFault(DEVICE, f"no answer reading input registers 0-1 ({exc}); "
-                                      f"expected {expected}") from exc
+            raise DeviceFault(DEVICE, f"{self.address}: no answer reading input registers "
+                                      f"0-1 ({exc}); expected {expected}") from exc
         if rr.isError():
-            raise DeviceFault(DEVICE, f"input registers 0-1 answered {_exception_text(rr)}; "
-                                      f"expected {expected}: not a DentiBot-map device?")
+            raise DeviceFault(DEVICE, f"{self.address}: input registers 0-1 answered "
+                                      f"{_exception_text(rr)}; expected {expected}: not a "
+                                      "DentiBot-map device?")
         regs = list(getattr(rr, "registers", []))
         if len(regs) != 2:
-            raise DeviceFault(DEVICE, f"input registers 0-1 answered {regs!r}; "
-                                      f"expected {expected}")
+            raise DeviceFault(DEVICE, f"{self.address}: input registers 0-1 answered "
+                                      f"{regs!r}; expected {expected}")
         magic, version = regs
         if magic != MAGIC or version >> 8 != MAP_VERSION[0]:
-            raise DeviceFault(DEVICE, f"read magic 0x{magic:04X} with map version "
-                                      f"{version_text(version)} at input registers 0-1; "
-                                      f"expected {expected}")
+            raise DeviceFault(DEVICE, f"{self.address}: read magic 0x{magic:04X} with map "
+                                      f"version {version_text(version)} at input registers "
+                                      f"0-1; expected {expected}")
         return magic, version
 
     # ------------------------------------------------------------------ polling
@@ -220,9 +277,11 @@ class AuxModbusDriver:
                     deadline = time.monotonic()
                     continue
                 await self._poll_once()
-                if self._watchdog_on and self.polls % self._feed_every == 0:
+                if self._watchdog_on:
                     try:
-                        await self._feed()
+                        await self._check_watchdog()
+                        if self.polls % self._feed_every == 0:
+                            await self._feed()
                     except DeviceFault as exc:
                         self._fail(str(exc))
             except Exception as exc:   # noqa: BLE001 - nothing unforeseen may stop the reader
@@ -235,8 +294,11 @@ class AuxModbusDriver:
         while not self._client.connected:
             if self._stopping:
                 return
-            if await self._client.connect():
-                break
+            try:
+                if await asyncio.wait_for(self._client.connect(), self.connect_timeout_s):
+                    break
+            except TimeoutError:
+                pass
             await asyncio.sleep(self.reconnect_period_s)
         self.reconnects += 1
         self._heartbeat = None
@@ -248,20 +310,53 @@ class AuxModbusDriver:
             self._fail(str(exc))
 
     async def _arm_watchdog(self) -> None:
-        """Write the watchdog time on a 1.1+ device, then feed it once."""
+        """Write the watchdog time on a 1.1+ device, feeding it in the same request."""
         self._watchdog_on = bool(self.watchdog_ms) and self.identity is not None \
             and (self.identity[1] & 0xFF) >= 1
         if self._watchdog_on:
-            await self._send("the host watchdog time", self._client.write_register,
-                              point(Table.HOLDING_REGISTER, "watchdog_ms").address,
-                              self.watchdog_ms)
             await self._feed()
 
     async def _feed(self) -> None:
+        """One FC16 of HR 6-7: a new host_watchdog counter (feeds the watchdog) and the
+        watchdog time (re-arms it, restoring it if someone changed it)."""
+        value = (self.feeds + 1) & 0xFFFF or 1
+        self._fed_value = None                  # unknown until the device acknowledged
+        await self._send("the host watchdog", self._client.write_registers,
+                         point(Table.HOLDING_REGISTER, "host_watchdog").address,
+                         [value, self.watchdog_ms])
         self.feeds += 1
-        await self._send("the host watchdog", self._client.write_register,
-                          point(Table.HOLDING_REGISTER, "host_watchdog").address,
-                          self.feeds & 0xFFFF or 1)
+        self._fed_value = value
+
+    async def _check_watchdog(self) -> None:
+        """Read HR 6-7 back (FC3) and compare with what this driver last wrote; a difference
+        latches :class:`WatchdogOverwritten` and the watchdog is written again at once."""
+        if self._fed_value is None:
+            return
+        first = point(Table.HOLDING_REGISTER, "host_watchdog").address
+        try:
+            rr = await self._client.read_holding_registers(first, count=2,
+                                                           device_id=self.device_id)
+        except ModbusException as exc:
+            raise DeviceFault(DEVICE, f"no answer reading the host watchdog back ({exc})"
+                              ) from exc
+        if rr.isError():
+            raise DeviceFault(DEVICE, f"reading the host watchdog back: {_exception_text(rr)}")
+        regs = tuple(getattr(rr, "registers", ()))
+        if len(regs) != 2:
+            raise DeviceFault(DEVICE, f"reading the host watchdog back gave {regs!r}")
+        self.readbacks += 1
+        expected = (self._fed_value, self.watchdog_ms)
+        if regs != expected:
+            fault = WatchdogOverwritten(self.address, regs, expected)
+            if self.watchdog_fault is None:
+                self.watchdog_fault = fault
+            log.error("aux_modbus.watchdog_overwritten", host=self.host, port=self.port,
+                      found=regs, expected=expected)
+            await self._feed()                  # restore the protection now
+
+    def clear_watchdog_fault(self) -> None:
+        """Acknowledge a latched :class:`WatchdogOverwritten` (the operator's reset)."""
+        self.watchdog_fault = None
 
     async def _poll_once(self) -> None:
         first, n = span(Table.INPUT_REGISTER)
@@ -311,6 +406,8 @@ class AuxModbusDriver:
         s = self._sample
         if s is None:
             raise DeviceFault(DEVICE, "no sample yet (connect() first)")
+        if self.watchdog_fault is not None:
+            raise self.watchdog_fault
         if self._task is None or self._task.done():
             raise DeviceFault(DEVICE, "not polling (closed)"
                               + (f"; last error: {self._last_error}" if self._last_error else ""))

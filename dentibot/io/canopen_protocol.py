@@ -12,6 +12,12 @@ Contents
 - NMT commands and states, SYNC, heartbeat, EMCY (u16 LE error code, u8 error register,
   5 manufacturer bytes) with the EPOS4 error-code table (:data:`EPOS4_ERROR_CODES`) and the
   CiA 301 generic error classes as fall-back (:func:`error_meaning`).
+- Liveness: the heartbeat consumer entry 0x1016:xx (CiA 301: producer node id in bits
+  23..16, consumer time in ms in bits 15..0; :func:`encode_consumer_heartbeat`), the
+  heartbeat error code 0x8130 (:data:`HEARTBEAT_ERROR_CODE`), the abort connection option
+  code 0x6007 (:class:`AbortConnectionOption`) and the quick stop option code 0x605A
+  (:data:`QUICK_STOP_OPTIONS`), CiA 402. devices.md names only the heartbeat COB-ID; these
+  are the standards' definitions, which the driver writes and reads back at start-up.
 - Expedited SDO (1..4 data bytes, all this project needs): requests, responses, aborts and the
   CiA 301 abort-code table (:data:`SDO_ABORT_CODES`). Segmented and block transfers are not
   implemented (a decoder reports them as ``kind="other"``/``"upload_segmented"``).
@@ -195,6 +201,37 @@ def encode_heartbeat(state: NmtState) -> bytes:
     return bytes((NmtState(state),))
 
 
+#: Largest consumer heartbeat time an 0x1016 entry can hold (ms, UNSIGNED16).
+CONSUMER_TIME_MAX_MS = 0xFFFF
+
+
+def encode_consumer_heartbeat(node_id: int, time_ms: int) -> int:
+    """The 0x1016:xx entry that makes a node watch ``node_id``'s heartbeat (CiA 301, object
+    1016h): bits 23..16 the producer's node id, bits 15..0 the consumer time in ms. A time of
+    0 (or node id 0) leaves the entry unused; :func:`encode_consumer_heartbeat` (0, 0) is 0."""
+    if (node_id, time_ms) != (0, 0):
+        check_node_id(node_id)
+    if isinstance(time_ms, bool) or not isinstance(time_ms, int) \
+            or not 0 <= time_ms <= CONSUMER_TIME_MAX_MS:
+        raise ConfigError("canopen.consumer_heartbeat_ms", time_ms,
+                          f"an integer 0..{CONSUMER_TIME_MAX_MS} ms (0 = entry unused)")
+    return (node_id << 16) | time_ms
+
+
+def decode_consumer_heartbeat(word: int) -> tuple[int, int]:
+    """(producer node id, consumer time ms) of an 0x1016:xx entry; bits 31..24 are reserved
+    and ignored (CiA 301). The entry is in use only when both are non-zero and the node id is
+    at most 127."""
+    return (word >> 16) & 0xFF, word & 0xFFFF
+
+
+def consumer_entry_active(word: int) -> bool:
+    """Whether an 0x1016:xx entry makes the node monitor a producer (CiA 301: an entry with
+    time 0, node id 0 or node id > 127 is not used)."""
+    node, ms = decode_consumer_heartbeat(word)
+    return ms > 0 and 1 <= node <= 127
+
+
 def decode_heartbeat(data: bytes) -> NmtState:
     """NMT state in a heartbeat (or boot-up) frame; the toggle bit 7 is ignored."""
     _check_len("heartbeat", data, (1,))
@@ -276,6 +313,9 @@ EPOS4_ERROR_RANGES: tuple[tuple[int, int, str], ...] = (
     (0x5480, 0x5483, "Hardware error"),
     (0x6180, 0x61F0, "Internal software error"),
 )
+#: CiA 301 error code of a heartbeat consumer that missed its producer ("life guard error or
+#: heartbeat error"; the EPOS4 lists it as "CAN heartbeat error").
+HEARTBEAT_ERROR_CODE = 0x8130
 #: CiA 301 emergency error code classes, most specific prefix first: (mask, value, meaning).
 ERROR_CLASSES: tuple[tuple[int, int, str], ...] = (
     (0xFF00, 0x0000, "error reset or no error"),
@@ -469,6 +509,10 @@ class OdObject:
 _BASE_OBJECTS: tuple[OdObject, ...] = (
     OdObject("device_type", 0x1000, 0, U32, "ro", note="low 16 bits: device profile (402)"),
     OdObject("error_register", 0x1001, 0, U8, "ro", "tx"),
+    OdObject("consumer_heartbeat_count", 0x1016, 0, U8, "ro",
+             note="number of consumer heartbeat entries"),
+    OdObject("consumer_heartbeat_time", 0x1016, 1, U32, "rw",
+             note="bits 23..16 producer node id, 15..0 consumer time ms (CiA 301)"),
     OdObject("producer_heartbeat_time", 0x1017, 0, U16, "rw", unit="ms", note="0 = off"),
     OdObject("vendor_id", 0x1018, 1, U32, "ro",
              note="0x000000FB for maxon motor ag (unconfirmed)"),
@@ -866,6 +910,43 @@ ENABLE_STEP: dict[State, Command | None] = {
     State.QUICK_STOP_ACTIVE: Command.DISABLE_VOLTAGE,
     State.FAULT_REACTION_ACTIVE: None,
     State.FAULT: Command.FAULT_RESET,
+}
+
+
+class AbortConnectionOption(IntEnum):
+    """Abort connection option code 0x6007 (CiA 402): what an enabled drive does on an "abort
+    connection" event -- its heartbeat consumer missed the master, a life-guarding or bus-off
+    error, or NMT taking it out of OPERATIONAL."""
+
+    NO_ACTION = 0
+    FAULT = 1
+    DISABLE_VOLTAGE = 2
+    QUICK_STOP = 3
+
+
+#: What each 0x6007 value does (CiA 402). FAULT runs the drive's fault reaction, which on the
+#: EPOS4 is a stop on the quick-stop ramp 0x6085 before the power stage goes off (assumption:
+#: the EPOS4 firmware specification's "fault reaction active" describes a quick stop, the
+#: exact wording was not checked here); it latches FAULT, so only a fault reset followed by
+#: the enable sequence turns the motor again. QUICK_STOP stops on the same ramp but ends in
+#: QUICK STOP ACTIVE, from which "enable operation" alone (transition 16) restarts motion.
+ABORT_CONNECTION_OPTIONS: dict[AbortConnectionOption, str] = {
+    AbortConnectionOption.NO_ACTION: "no action",
+    AbortConnectionOption.FAULT: "fault signal (fault reaction: quick-stop ramp, then FAULT)",
+    AbortConnectionOption.DISABLE_VOLTAGE: "disable voltage (power stage off at once)",
+    AbortConnectionOption.QUICK_STOP: "quick stop (quick-stop ramp, then QUICK STOP ACTIVE)",
+}
+
+#: Quick stop option code 0x605A (CiA 402) -> the state after the quick-stop function has
+#: brought the motor to rest: None = stay in QUICK STOP ACTIVE, else switch on disabled.
+#: 0 disables the drive function at once (no ramp); 1 and 5 use the slow-down ramp, 2 and 6
+#: the quick-stop ramp (the simulated drive has one ramp, 0x6085, for both).
+QUICK_STOP_OPTIONS: dict[int, State | None] = {
+    0: State.SWITCH_ON_DISABLED,
+    1: State.SWITCH_ON_DISABLED,
+    2: State.SWITCH_ON_DISABLED,
+    5: None,
+    6: None,
 }
 
 

@@ -24,7 +24,14 @@ from typing import Literal
 from pydantic import Field
 
 from dentibot.io.aux_modbus import AuxModbusDriver
-from dentibot.io.epos4 import Epos4Driver
+from dentibot.io.epos4 import (
+    DEFAULT_CONSUMER_MS,
+    DEFAULT_FEED_TIMEOUT_S,
+    DEFAULT_HOST_HEARTBEAT_PERIOD_S,
+    DEFAULT_HOST_NODE_ID,
+    DEFAULT_QUICK_STOP_FILE_RPM_S,
+    Epos4Driver,
+)
 from dentibot.io.meca500 import Meca500Driver
 from dentibot.io.netft import NetFTDriver
 from dentibot.yamlfile import StrictModel, YamlFileError, load
@@ -48,6 +55,10 @@ class ArmConfig(_Strict):
         0.05, ge=0.005, le=0.1,
         description="SetVelTimeout, the arm's dead-man (s): the arm stops by itself when no "
                     "velocity command came for this long; at most 50 control periods")
+    connection_watchdog_s: float = Field(
+        0.2, ge=0.005, le=60.0,
+        description="ConnectionWatchdog: the arm stops and drops the connection when DentiBot "
+                    "has been silent this long (s)")
 
 
 class FTConfig(_Strict):
@@ -64,12 +75,27 @@ class HandpieceConfigIO(_Strict):
     host: str = Field("127.0.0.1", min_length=1, max_length=253)
     port: int = Field(29536, ge=1, le=65535)
     node_id: int = Field(1, ge=1, le=127)
+    host_node_id: int = Field(DEFAULT_HOST_NODE_ID, ge=1, le=127,
+                              description="DentiBot's node id on the bus (its heartbeat)")
+    consumer_ms: int = Field(DEFAULT_CONSUMER_MS, ge=10, le=500,
+                             description="the drive's heartbeat consumer time (ms): without "
+                                         "DentiBot's heartbeat this long it stops the file")
+    host_heartbeat_ms: int = Field(round(1000 * DEFAULT_HOST_HEARTBEAT_PERIOD_S), ge=1,
+                                   le=166, description="DentiBot's heartbeat period (ms); at most a "
+                                               "third of consumer_ms")
+    feed_timeout_ms: int = Field(round(1000 * DEFAULT_FEED_TIMEOUT_S), ge=20, le=1000,
+                                 description="the heartbeat is withheld when the control loop "
+                                             "has not read the drive for this long (ms)")
+    quick_stop_rpm_s: float = Field(DEFAULT_QUICK_STOP_FILE_RPM_S, ge=100.0, le=100_000.0,
+                                    description="quick-stop deceleration at the file (rpm/s)")
+    connect_timeout_s: float = Field(2.0, ge=0.1, le=30.0)
 
 
 class AuxConfig(_Strict):
     host: str = Field(min_length=1, max_length=253, description="the aux I/O's address")
     port: int = Field(502, ge=1, le=65535)
     device_id: int = Field(1, ge=0, le=247)
+    connect_timeout_s: float = Field(1.0, ge=0.1, le=30.0)
     watchdog_ms: int = Field(
         200, ge=50, le=1000,
         description="host watchdog armed on a map 1.1+ device (ms): host-lost is declared "
@@ -88,10 +114,19 @@ class DevicesConfig(_Strict):
     estop_waiver: str | None = Field(None, min_length=10, max_length=500)
 
     def cross_checks(self) -> list[tuple[tuple, str]]:
+        out = []
         if self.aux is None and self.estop_waiver is None:
-            return [(("aux",), "the aux I/O (emergency stop, pedal) is required: configure "
-                               "it, or state why it is left out in estop_waiver")]
-        return []
+            out.append((("aux",), "the aux I/O (emergency stop, pedal) is required: configure "
+                                  "it, or state why it is left out in estop_waiver"))
+        h = self.handpiece
+        if h.host_node_id == h.node_id:
+            out.append((("handpiece", "host_node_id"),
+                        f"{h.host_node_id} is the drive's own node id: choose another"))
+        if 3 * h.host_heartbeat_ms > h.consumer_ms:
+            out.append((("handpiece", "host_heartbeat_ms"),
+                        f"{h.host_heartbeat_ms} ms: at most a third of consumer_ms "
+                        f"({h.consumer_ms} ms), so that one lost beat is not a fault"))
+        return out
 
 
 def loopback_config(host: str = "127.0.0.1", meca_port: int = 10000, netft_port: int = 49152,
@@ -141,17 +176,24 @@ async def open_devices(cfg: DevicesConfig, *, home: bool = True) -> AsyncIterato
         stack.push_async_callback(ft.close)
         aux = None
         if x is not None:
-            aux = AuxModbusDriver(x.host, x.port, x.device_id, watchdog_ms=x.watchdog_ms)
+            aux = AuxModbusDriver(x.host, x.port, x.device_id, watchdog_ms=x.watchdog_ms,
+                                  connect_timeout_s=x.connect_timeout_s)
             await aux.connect()
             stack.push_async_callback(aux.close)
         bus_kwargs = {"host": h.host, "port": h.port} if h.interface == "socketcand" else {}
         motor = Epos4Driver(interface=h.interface, channel=h.channel, host=h.host, port=h.port,
-                            node_id=h.node_id, bus_kwargs=bus_kwargs or None)
+                            node_id=h.node_id, bus_kwargs=bus_kwargs or None,
+                            host_node_id=h.host_node_id, consumer_ms=h.consumer_ms,
+                            host_heartbeat_period_s=h.host_heartbeat_ms / 1000.0,
+                            feed_timeout_s=h.feed_timeout_ms / 1000.0,
+                            quick_stop_file_rpm_s=h.quick_stop_rpm_s,
+                            connect_timeout_s=h.connect_timeout_s)
         await motor.connect()
         stack.push_async_callback(motor.close)
         await motor.enable()
         arm = Meca500Driver(a.host, a.control_port, a.monitor_port,
-                            vel_timeout_s=a.vel_timeout_s)
+                            vel_timeout_s=a.vel_timeout_s,
+                            connection_watchdog_s=a.connection_watchdog_s)
         await arm.connect()
         stack.push_async_callback(arm.close)
         if home:

@@ -2,8 +2,9 @@
 
 :class:`Epos4Driver` implements :class:`dentibot.io.Handpiece` on any python-can bus: kernel
 SocketCAN (``interface="socketcan"``, the default, channel ``"can0"``), a socketcand server
-(``interface="socketcand"``, host/port), python-can's in-process ``virtual`` bus, or a bus
-factory of your own.
+(``interface="socketcand"``, host/port: the driver's own client, :class:`SocketcandBus`, whose
+connection, handshake and sends are bounded in time), python-can's in-process ``virtual`` bus,
+or a bus factory of your own.
 
 Start-up (``connect()``; SDOs only here, never in the cyclic exchange):
 
@@ -17,10 +18,45 @@ Start-up (``connect()``; SDOs only here, never in the cyclic exchange):
    per PDO, COB-ID invalid -> transmission type -> mapping count 0 -> entries -> count ->
    COB-ID valid; then read everything back and compare (``configure_pdos=False``: only
    compare, for a drive configured by other means).
-5. NMT *start*; the cyclic exchange begins (own task with ``sync=True``, else the caller's
-   ``exchange()``); a FAULT found at start-up is reset; then the CiA 402 enable sequence
-   (shutdown -> switch on -> enable operation), each step waiting for the statusword in
-   TxPDO1, ``state_timeout_s`` in all -> :class:`DeviceFault` naming the state it got stuck in.
+5. Liveness (see below): write the quick-stop deceleration 0x6085, the abort connection
+   option code 0x6007 and the heartbeat consumer entry 0x1016:01 (the host's node id and the
+   consumer time), then read all three back; a drive that does not hold what was written is a
+   :class:`ConfigurationMismatch` and the connection fails.
+6. NMT *start*; the cyclic exchange begins (own task with ``sync=True``, else the caller's
+   ``exchange()``) and with it the host's heartbeat; a FAULT found at start-up is reset; then
+   the CiA 402 enable sequence (shutdown -> switch on -> enable operation), each step waiting
+   for the statusword in TxPDO1, ``state_timeout_s`` in all -> :class:`DeviceFault` naming the
+   state it got stuck in.
+
+Liveness: the drive stops the file by itself when the host dies, freezes or loses the bus.
+CiA 301 heartbeat consumer: 0x1016:01 = (``host_node_id`` << 16) | ``consumer_ms``; the host
+produces NMT error-control frames 0x700 + ``host_node_id`` (state byte 0x05, operational)
+every ``host_heartbeat_period_s``; monitoring starts at the first one the drive receives
+(CiA 301). When none arrives for ``consumer_ms`` the drive signals a heartbeat error (EMCY
+0x8130, error register bit "communication") and applies the abort connection option code
+0x6007 (CiA 402). The default, 1 "fault signal", runs the fault reaction (a stop on the
+quick-stop ramp 0x6085 written here) and latches FAULT: the file stays still until the host is
+back and calls :meth:`fault_reset` and :meth:`enable`. Option 3 "quick stop" would end in
+QUICK STOP ACTIVE, which "enable operation" alone leaves; that is why 1 is the default.
+devices.md names only the heartbeat COB-ID; the objects and their layout are CiA 301/402, the
+reaction is the EPOS4's documented use of 0x6007 (unconfirmed against the EPOS4 firmware
+specification here: read back at start-up).
+
+Where the heartbeat comes from decides what it covers. It is produced by the cyclic exchange
+(the own SYNC task, or the caller's ``exchange()``), so it stops with the process (kill,
+crash), with a frozen process (SIGSTOP, a debugger), with a blocked event loop and with a dead
+link (bus-off, a cut cable, a dead socketcand). A thread of its own would keep beating through
+a blocked event loop; a task of the event loop keeps beating through a control task that is
+stuck in an ``await`` while the loop itself runs. So the heartbeat is also gated by the
+control path: the control task feeds the driver every tick (``read()`` does, or
+:meth:`feed`), and while the file is commanded to turn (a non-zero velocity, a move not
+finished) the heartbeat is withheld once the last feed is older than ``feed_timeout_s``. A
+control task that stops ticking while the file turns therefore stops the file within
+``feed_timeout_s + consumer_ms``; a file at rest keeps the heartbeat going from the cyclic
+exchange alone (nothing moves unless the control path commands it, which feeds). Supervision
+by feed starts with the first feed, so start-up and the time before the first tick are covered
+by the process-level liveness only. No SYNC/RPDO timeout is configured: devices.md documents
+none for the EPOS4.
 
 Cyclic exchange (every ``sync_period_s``): RxPDO2 (target position, profile velocity), RxPDO1
 (controlword, target velocity, mode), then SYNC; the drive answers with TxPDO1 (statusword,
@@ -43,10 +79,12 @@ Commands: ``set_velocity`` (profile velocity mode 3, file rpm * gear -> 0x60FF),
 with the set-point acknowledge bit 12; ``wait_move_done()`` waits for target reached),
 ``stop()`` = profile velocity 0 rpm: the drive ramps down and stays enabled, holding zero speed
 (use ``quick_stop()`` for the CiA 402 quick stop, after which ``enable()`` is needed),
-``fault_reset()`` (rising edge of controlword bit 7) and ``enable()``.
+``fault_reset()`` (rising edge of controlword bit 7, once the fault reaction has ended) and
+``enable()``.
 
-``close()`` commands 0 rpm and *shutdown* (power stage off) in one last cycle, sends NMT
-*enter pre-operational*, stops the Notifier and shuts the bus down.
+``close()`` commands 0 rpm and *shutdown* (power stage off), switches the heartbeat consumer
+off (0x1016:01 = 0) while the host still beats, stops the cycle, sends NMT *enter
+pre-operational*, stops the Notifier and shuts the bus down.
 
 Assumptions (unconfirmed, read from the drive where possible): velocity unit rpm (0x60A9
 default), torque constant in uNm/A and rated torque in uNm, encoder 2048 increments per motor
@@ -57,6 +95,8 @@ from __future__ import annotations
 
 import asyncio
 import math
+import select
+import socket
 import threading
 import time
 from collections import deque
@@ -69,6 +109,7 @@ import structlog
 from dentibot.errors import ConfigError, DeviceFault, ProtocolError
 from dentibot.io import canopen_protocol as co
 from dentibot.io.canopen_protocol import (
+    ABORT_CONNECTION_OPTIONS,
     CONTROLWORD,
     CW_CHANGE_SET_IMMEDIATELY,
     CW_NEW_SETPOINT,
@@ -83,6 +124,7 @@ from dentibot.io.canopen_protocol import (
     SW_TARGET_REACHED,
     TXPDO1,
     TXPDO2,
+    AbortConnectionOption,
     Command,
     Emcy,
     Mode,
@@ -92,21 +134,235 @@ from dentibot.io.canopen_protocol import (
     SdoFrame,
     State,
 )
-from dentibot.io.interfaces import MotorState
+from dentibot.io.interfaces import ConnectTimeout, MotorState
 
 log = structlog.get_logger(__name__)
 
 #: Increments per motor turn used when the drive does not report 0x3000:05: a 512-pulse
 #: quadrature encoder counted x4 (assumption for the handpiece motor).
 DEFAULT_COUNTS_PER_TURN = 2048
+#: The host's node id in the drive's heartbeat consumer entry. CiA 301 gives the NMT master
+#: no fixed id; 127, the top of the range, is the usual choice (configurable).
+DEFAULT_HOST_NODE_ID = 127
+#: Heartbeat consumer time (ms). With the host beating every 5 ms, a beat may come 25 ms late
+#: (measured on loopback through socketcand on a loaded machine: gaps up to 17 ms) before the
+#: drive stops the file. The budget it fits: a file at 60 rpm must be
+#: still (< 1 rpm) within 100 ms of the host's death; the handpiece's speed loop (a first
+#: order, 10 ms, see ``dentibot.sim.handpiece``) needs 10 ms * ln(60) = 41 ms to come down
+#: from 60 rpm even on an instant ramp, the quick-stop ramp at
+#: :data:`DEFAULT_QUICK_STOP_FILE_RPM_S` another 10 ms, scheduling a few ms: 30 ms is left
+#: for detection. A host on a real-time system may use less; a host whose event loop may
+#: stall longer than about 25 ms needs more, and then stops the file later.
+DEFAULT_CONSUMER_MS = 30
+#: The host's heartbeat period (s): a sixth of the consumer time, every other cycle at 500 Hz
+#: (one 1-byte frame, about 13 kbit/s on the bus: 1.3 % of 1 Mbit/s).
+DEFAULT_HOST_HEARTBEAT_PERIOD_S = 0.005
+#: Control-path silence (s) after which a turning file loses its heartbeat: 50 periods at
+#: 500 Hz, so a few late ticks never withhold it, a dead or stuck control task always does.
+DEFAULT_FEED_TIMEOUT_S = 0.1
+#: Quick-stop deceleration at the file (rpm/s): 60 rpm to rest in 10 ms, 402,000 rpm/s at
+#: the motor through the 67:1 gear. Assumption: within what a small maxon DC motor's peak
+#: torque gives its own rotor (the file's inertia is negligible behind the gear); the drive
+#: limits the current anyway.
+DEFAULT_QUICK_STOP_FILE_RPM_S = 6000.0
 #: Bad frames logged one by one before logging only every ``_LOG_EVERY``-th.
 _LOG_FIRST, _LOG_EVERY = 10, 1000
+#: Longest ``close()`` waits for the drive to confirm the shutdown (s).
+_CLOSE_WAIT_S = 0.2
 #: Notifier receive timeout (s): how long ``close()`` may wait for the reader thread.
 _NOTIFIER_TIMEOUT_S = 0.05
 
 _TX1, _TX2 = TXPDO1.layout, TXPDO2.layout
 _RX1, _RX2 = RXPDO1.layout, RXPDO2.layout
 _I32_MIN, _I32_MAX = co.I32.range
+
+
+#: socketcand's default TCP port.
+SOCKETCAND_PORT = 29536
+#: Longest socketcand message accepted (characters from ``<`` to ``>``); a frame line is
+#: under 60.
+_SOCKETCAND_MAX_CHARS = 512
+
+
+class ConfigurationMismatch(DeviceFault):
+    """The drive does not hold a value the driver wrote at start-up (read back differs):
+    ``obj`` (the object), ``written``, ``read``. A drive that would not watch the host's
+    heartbeat, or would not stop on its loss, must not be run."""
+
+    def __init__(self, device: str, obj: OdObject, written: int, read: int, why: str) -> None:
+        self.obj, self.written, self.read = obj, written, read
+        super().__init__(device, f"{obj} reads back {read} (0x{read:X}) after writing "
+                                 f"{written} (0x{written:X}): {why}")
+
+
+class SocketcandBus(can.BusABC):
+    """A socketcand client (raw mode) whose every wait is bounded.
+
+    The ASCII protocol (socketcand's documentation, as python-can's client uses it): the
+    server greets ``< hi >``; ``< open CHANNEL >`` -> ``< ok >``; ``< rawmode >`` -> ``< ok >``;
+    then ``< send ID LEN B0 .. >`` to the bus (ID 3 hex digits for 11-bit, 8 for 29-bit) and
+    ``< frame ID SECS.USECS DATA >`` from it (DATA one hex string). python-can's own client
+    waits for the greeting with no time limit, retries a refused connection for 10 s and
+    compares each handshake answer to a single ``recv``; this one:
+
+    - connects with ``timeout_s`` and finishes the whole handshake before the same deadline;
+      no greeting in time is :class:`TimeoutError` (the driver turns it into
+      :class:`~dentibot.io.interfaces.ConnectTimeout` naming the address), an ``< error .. >``
+      answer is :class:`can.CanInitializationError`;
+    - buffers the stream, so answers and frames split or glued across TCP reads are fine;
+    - bounds every send by ``send_timeout_s`` (a peer that stops reading makes ``send`` raise
+      :class:`can.CanOperationError` instead of blocking the event loop);
+    - reports a closed connection as :class:`can.CanOperationError` from ``recv`` (the
+      Notifier hands it to the driver as a link error).
+    """
+
+    def __init__(self, channel: str, host: str = "127.0.0.1", port: int = SOCKETCAND_PORT, *,
+                 timeout_s: float = 2.0, send_timeout_s: float = 0.05, tcp_tune: bool = True,
+                 **kwargs: Any) -> None:
+        self.host, self.port = host, port
+        self.channel = channel
+        self.timeout_s = float(timeout_s)
+        self._text = ""
+        self._frames: deque[can.Message] = deque()
+        self.channel_info = f"socketcand {host}:{port} channel {channel}"
+        deadline = time.monotonic() + self.timeout_s
+        try:
+            sock = socket.create_connection((host, port), timeout=self.timeout_s)
+        except TimeoutError:
+            raise TimeoutError("TCP connection") from None
+        try:
+            if tcp_tune:
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            self._sock = sock
+            self._expect("< hi >", "greeting", deadline)
+            self._say(f"< open {channel} >", deadline)
+            self._expect("< ok >", f"answer to < open {channel} >", deadline)
+            self._say("< rawmode >", deadline)
+            self._expect("< ok >", "answer to < rawmode >", deadline)
+            sock.settimeout(float(send_timeout_s))
+        except BaseException:
+            sock.close()
+            raise
+        super().__init__(channel=channel, **kwargs)
+
+    # ---------------------------------------------------------------- handshake
+    def _say(self, text: str, deadline: float) -> None:
+        self._sock.settimeout(max(1e-3, deadline - time.monotonic()))
+        self._sock.sendall(text.encode("ascii"))
+
+    def _expect(self, want: str, what: str, deadline: float) -> None:
+        while True:
+            msg = self._next_message()
+            if msg is not None:
+                if msg == want:
+                    return
+                if msg.startswith("< frame "):          # a frame before the answer: keep it
+                    self._keep_frame(msg)
+                    continue
+                if msg.startswith("< error"):
+                    raise can.CanInitializationError(
+                        f"{self.channel_info}: {what}: the server answered {msg!r}")
+                raise can.CanInitializationError(
+                    f"{self.channel_info}: {what}: expected {want!r}, got {msg!r}")
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError(what)
+            self._sock.settimeout(left)
+            try:
+                data = self._sock.recv(4096)
+            except TimeoutError:
+                raise TimeoutError(what) from None
+            if not data:
+                raise can.CanInitializationError(
+                    f"{self.channel_info}: the server closed the connection before its {what}")
+            self._text += data.decode("ascii", "replace")
+
+    def _next_message(self) -> str | None:
+        """Take the next complete ``< ... >`` message off the buffer (bytes outside one, and
+        over-long ones, are skipped)."""
+        text = self._text
+        while True:
+            start = text.find("<")
+            if start < 0:
+                self._text = ""
+                return None
+            end = text.find(">", start)
+            if end < 0:
+                self._text = text[start:] if len(text) - start <= _SOCKETCAND_MAX_CHARS else ""
+                return None
+            msg, text = text[start:end + 1], text[end + 1:]
+            if len(msg) <= _SOCKETCAND_MAX_CHARS:
+                self._text = text
+                return msg
+
+    def _keep_frame(self, msg: str) -> None:
+        frame = self.parse_frame(msg)
+        if frame is not None:
+            frame.channel = self.channel
+            self._frames.append(frame)
+
+    @staticmethod
+    def parse_frame(msg: str) -> can.Message | None:
+        """``< frame ID SECS.USECS DATA >`` -> :class:`can.Message` (None if malformed)."""
+        parts = msg[1:-1].split()
+        if len(parts) not in (3, 4) or parts[0] != "frame":
+            return None
+        sid, stamp = parts[1], parts[2]
+        data_hex = parts[3] if len(parts) == 4 else ""
+        try:
+            can_id = int(sid, 16)
+            ts = float(stamp)
+            data = bytes.fromhex(data_hex)
+        except ValueError:
+            return None
+        if len(sid) not in (3, 8) or len(data) > 8:
+            return None
+        return can.Message(timestamp=ts, arbitration_id=can_id, is_extended_id=len(sid) == 8,
+                           data=data)
+
+    @staticmethod
+    def send_line(msg: can.Message) -> str:
+        sid = f"{msg.arbitration_id:08X}" if msg.is_extended_id else f"{msg.arbitration_id:03X}"
+        data = bytes(msg.data)[:msg.dlc]
+        return " ".join(["<", "send", sid, f"{len(data):X}", *(f"{b:02X}" for b in data), ">"])
+
+    # ---------------------------------------------------------------- BusABC
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        while True:
+            if self._frames:
+                return self._frames.popleft(), False
+            msg = self._next_message()
+            if msg is not None:
+                if msg.startswith("< frame "):
+                    self._keep_frame(msg)
+                continue                                # < ok >, < echo >, < error ..>
+            try:
+                ready, _, _ = select.select([self._sock], [], [], timeout)
+            except (OSError, ValueError) as exc:
+                raise can.CanOperationError(f"{self.channel_info}: receive failed: "
+                                            f"{exc}") from exc
+            if not ready:
+                return None, False
+            try:
+                data = self._sock.recv(4096)
+            except OSError as exc:
+                raise can.CanOperationError(f"{self.channel_info}: receive failed: "
+                                            f"{exc}") from exc
+            if not data:
+                raise can.CanOperationError(f"{self.channel_info}: the server closed the "
+                                            "connection")
+            self._text += data.decode("ascii", "replace")
+            timeout = 0.0
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        try:
+            self._sock.sendall(self.send_line(msg).encode("ascii"))
+        except OSError as exc:              # TimeoutError included: the peer stopped reading
+            raise can.CanOperationError(f"{self.channel_info}: send failed: {exc!r}") from exc
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        self._sock.close()
 
 
 class SdoAbort(DeviceFault):
@@ -191,6 +447,23 @@ class Epos4Driver:
         sdo_timeout_s: per SDO request (0.5 s); state_timeout_s: for enable / fault reset
             (1.0 s).
         configure_pdos: write the PDO mapping at start-up (True) or only verify it.
+        connect_timeout_s: opening the bus, for socketcand the TCP connection and the whole
+            handshake (2.0 s): a silent peer is a :class:`ConnectTimeout`.
+        host_node_id: the node id whose heartbeat the drive consumes, the host's (127);
+            it produces 0x700 + host_node_id.
+        consumer_ms: heartbeat consumer time written to 0x1016:01 (ms; see
+            :data:`DEFAULT_CONSUMER_MS`); 0 writes the entry off, None leaves the drive's
+            entry as it is.
+        host_heartbeat_period_s: the host's heartbeat period (0.005 s), at most a third of
+            the consumer time.
+        feed_timeout_s: while the file is commanded to turn, the heartbeat is withheld once
+            the control path has not fed the driver (``read()``/:meth:`feed`) for this long
+            (0.1 s = 50 control periods); None: no supervision by feed.
+        abort_connection_option: 0x6007 written at start-up (1, fault signal; see
+            :class:`~dentibot.io.canopen_protocol.AbortConnectionOption`); None: keep.
+        quick_stop_file_rpm_s: quick-stop deceleration at the file (rpm/s), written to
+            0x6085 as motor rpm/s (x gear); None: keep the drive's. Default
+            :data:`DEFAULT_QUICK_STOP_FILE_RPM_S`.
         name: device name in errors and logs.
     """
 
@@ -205,8 +478,18 @@ class Epos4Driver:
                  heartbeat_timeout_s: float = 0.5, stale_after_s: float = 0.1,
                  answer_timeout_s: float = 0.1, sdo_timeout_s: float = 0.5,
                  state_timeout_s: float = 1.0, configure_pdos: bool = True,
+                 connect_timeout_s: float = 2.0, host_node_id: int = DEFAULT_HOST_NODE_ID,
+                 consumer_ms: int | None = DEFAULT_CONSUMER_MS,
+                 host_heartbeat_period_s: float = DEFAULT_HOST_HEARTBEAT_PERIOD_S,
+                 feed_timeout_s: float | None = DEFAULT_FEED_TIMEOUT_S,
+                 abort_connection_option: int | None = AbortConnectionOption.FAULT,
+                 quick_stop_file_rpm_s: float | None = DEFAULT_QUICK_STOP_FILE_RPM_S,
                  name: str = co.DEVICE) -> None:
         self.node_id = co.check_node_id(node_id)
+        self.host_node_id = co.check_node_id(host_node_id)
+        if self.host_node_id == self.node_id:
+            raise ConfigError("epos4.host_node_id", host_node_id,
+                              f"a node id other than the drive's ({node_id})")
         for field, v, lo in (("epos4.gear_ratio", gear_ratio, 0.0),
                              ("epos4.sync_period_s", sync_period_s, 0.0),
                              ("epos4.max_file_rpm", max_file_rpm, 0.0),
@@ -214,9 +497,29 @@ class Epos4Driver:
                              ("epos4.stale_after_s", stale_after_s, 0.0),
                              ("epos4.answer_timeout_s", answer_timeout_s, 0.0),
                              ("epos4.sdo_timeout_s", sdo_timeout_s, 0.0),
-                             ("epos4.state_timeout_s", state_timeout_s, 0.0)):
-            if not (isinstance(v, int | float) and math.isfinite(v) and v > lo):
+                             ("epos4.state_timeout_s", state_timeout_s, 0.0),
+                             ("epos4.connect_timeout_s", connect_timeout_s, 0.0),
+                             ("epos4.host_heartbeat_period_s", host_heartbeat_period_s, 0.0),
+                             ("epos4.feed_timeout_s",
+                              1.0 if feed_timeout_s is None else feed_timeout_s, 0.0),
+                             ("epos4.quick_stop_file_rpm_s",
+                              1.0 if quick_stop_file_rpm_s is None else quick_stop_file_rpm_s,
+                              0.0)):
+            if isinstance(v, bool) or not (isinstance(v, int | float) and math.isfinite(v)
+                                           and v > lo):
                 raise ConfigError(field, v, f"a finite number > {lo}")
+        if consumer_ms is not None:
+            co.encode_consumer_heartbeat(self.host_node_id, consumer_ms)   # range check
+            if consumer_ms and host_heartbeat_period_s * 3000.0 > consumer_ms:
+                raise ConfigError("epos4.host_heartbeat_period_s", host_heartbeat_period_s,
+                                  f"at most a third of the consumer time ({consumer_ms} ms), "
+                                  "so that a late beat or two do not fault the drive")
+        if abort_connection_option is not None:
+            try:
+                abort_connection_option = AbortConnectionOption(abort_connection_option)
+            except ValueError:
+                raise ConfigError("epos4.abort_connection_option", abort_connection_option,
+                                  "0..3 (CiA 402 0x6007)") from None
         if not 0 < move_rpm <= max_file_rpm:
             raise ConfigError("epos4.move_rpm", move_rpm, f"0 < rpm <= {max_file_rpm}")
         if not (isinstance(encoder_counts_per_turn, int) and encoder_counts_per_turn > 0):
@@ -241,8 +544,16 @@ class Epos4Driver:
         self.sdo_timeout_s = float(sdo_timeout_s)
         self.state_timeout_s = float(state_timeout_s)
         self.configure_pdos = bool(configure_pdos)
+        self.connect_timeout_s = float(connect_timeout_s)
+        self.consumer_ms = consumer_ms
+        self.host_heartbeat_period_s = float(host_heartbeat_period_s)
+        self.feed_timeout_s = None if feed_timeout_s is None else float(feed_timeout_s)
+        self.abort_connection_option = abort_connection_option
+        self.quick_stop_file_rpm_s = (None if quick_stop_file_rpm_s is None
+                                      else float(quick_stop_file_rpm_s))
         self.name = name
         nid = self.node_id
+        self._host_hb_cob = co.cob_id("HEARTBEAT", self.host_node_id)
         self._cob = {fn: co.cob_id(fn, nid) for fn in
                      ("RPDO1", "RPDO2", "TPDO1", "TPDO2", "SDO_RX", "SDO_TX", "EMCY",
                       "HEARTBEAT")}
@@ -262,6 +573,9 @@ class Epos4Driver:
         self.errors = 0             # frames that broke the protocol (wrong length ...)
         self.emcy_count = 0
         self.heartbeats = 0
+        self.host_heartbeats = 0    # heartbeats this host produced for the drive's consumer
+        self.withheld = 0           # host heartbeats withheld: the control path went silent
+        self.feeds = 0
         self.sdo_requests = 0
         self.sdo_aborts = 0
         self.sdo_timeouts = 0
@@ -294,6 +608,9 @@ class Epos4Driver:
         self._outstanding: deque[float] = deque()
         self._matched = 0
         self._hb_t = 0.0
+        self._host_hb_t = -math.inf      # when the host's last heartbeat went out
+        self._fed_t: float | None = None  # last feed from the control path (None: never)
+        self._withholding = False
         # command image sent every cycle
         self._cw = CONTROLWORD[Command.DISABLE_VOLTAGE]
         self._mode = int(Mode.PROFILE_VELOCITY)
@@ -310,6 +627,10 @@ class Epos4Driver:
         self._sdo_lock: asyncio.Lock | None = None
         self._sdo_pending: tuple[int, int, asyncio.Future] | None = None
         self._rx_event: asyncio.Event | None = None
+        self._consumer_set = False  # 0x1016:01 written (switched off again on close)
+        #: what the drive holds after start-up: 0x6085 (motor rpm/s), 0x6007, 0x1016:01
+        #: as (host node id, consumer ms)
+        self.liveness: dict[str, Any] = {}
         self._connected = False     # bus open
         self._started = False       # NMT started, cyclic exchange possible
         self._closed = False
@@ -320,9 +641,11 @@ class Epos4Driver:
             return self._bus_factory()
         kw = dict(self.bus_kwargs)
         if self.interface == "socketcand":
-            kw.setdefault("host", self.host)
-            kw.setdefault("port", self.port)
+            self.host = kw.pop("host", self.host)
+            self.port = kw.pop("port", self.port)
             kw.setdefault("tcp_tune", True)
+            kw.setdefault("timeout_s", self.connect_timeout_s)
+            return SocketcandBus(self.channel, self.host, self.port, **kw)
         return can.Bus(interface=self.interface, channel=self.channel, **kw)
 
     def _bus_description(self) -> str:
@@ -347,6 +670,13 @@ class Epos4Driver:
         self._rx_event = asyncio.Event()
         try:
             self._bus = await _in_thread(self._make_bus, f"{self.name}-open-bus")
+        except TimeoutError as exc:
+            if self.interface == "socketcand":
+                raise ConnectTimeout(self.name, f"{self.host}:{self.port}",
+                                     f"socketcand {exc} (channel {self.channel})",
+                                     self.connect_timeout_s) from None
+            raise ConnectTimeout(self.name, self._bus_description(), "answer opening the bus",
+                                 self.connect_timeout_s) from None
         except (can.CanError, OSError, ValueError, TypeError, ImportError) as exc:
             raise DeviceFault(self.name, f"cannot open CAN bus {self._bus_description()}: "
                                          f"{exc}") from exc
@@ -365,12 +695,31 @@ class Epos4Driver:
         if self._closed:
             return
         self._closed = True
-        await self.stop_sync()
-        if self._started and self._link_error is None:
+        healthy = self._started and self._link_error is None
+        if healthy:
             self._target_vel = 0
             self._mode = int(Mode.PROFILE_VELOCITY)
             self._sp = "idle"
             self._cw = CONTROLWORD[Command.SHUTDOWN]
+            self._fed_t = None              # leaving: beat unconditionally until the end
+            # the power stage off, confirmed by the statusword (bounded: a silent drive
+            # does not hold the close up)
+            try:
+                await self._drive_cycles_until(
+                    lambda: self.state is not State.OPERATION_ENABLED,
+                    time.monotonic() + min(self.state_timeout_s, _CLOSE_WAIT_S))
+            except DeviceFault:
+                pass
+            if self.consumer_ms and self._consumer_set:
+                # the drive stops watching before the host stops beating (the cycle, and so
+                # the heartbeat, runs on meanwhile): a clean close is not a lost host
+                try:
+                    await self._sdo_write_at(*co.obj("consumer_heartbeat_time").address, 0)
+                except DeviceFault as exc:
+                    log.warning("epos4 consumer not switched off", device=self.name,
+                                error=str(exc))
+        await self.stop_sync()
+        if healthy:
             try:
                 self._send_cycle()
                 self._send(co.COB_BASE["NMT"],
@@ -436,6 +785,7 @@ class Epos4Driver:
                  counts_per_turn=self.counts_per_turn, error_code=hex(self.startup_error_code),
                  error_register=hex(register), state=self.state.value)
         await self._setup_pdos()
+        await self._configure_liveness()
         self._profile_vel = round(self.move_rpm * self.gear_ratio)
         self._cw = CONTROLWORD[Command.DISABLE_VOLTAGE]
         self._send(co.COB_BASE["NMT"], co.encode_nmt(NmtCommand.START, nid))
@@ -447,6 +797,42 @@ class Epos4Driver:
         if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE) or self.startup_error_code:
             await self.fault_reset()
         await self.enable()
+
+    async def _configure_liveness(self) -> None:
+        """Quick-stop deceleration 0x6085, abort connection option 0x6007 and the heartbeat
+        consumer 0x1016:01, each written (unless configured None) and read back. The consumer
+        goes last: the drive starts watching at the first heartbeat it receives (CiA 301),
+        which the cyclic exchange sends right after NMT start."""
+        writes: list[tuple[str, int, str]] = []
+        if self.quick_stop_file_rpm_s is not None:
+            writes.append(("quick_stop_deceleration",
+                           round(self.quick_stop_file_rpm_s * self.gear_ratio),
+                           "the drive would not stop on the configured quick-stop ramp"))
+        if self.abort_connection_option is not None:
+            reaction = ABORT_CONNECTION_OPTIONS[self.abort_connection_option]
+            writes.append(("abort_connection_option_code", int(self.abort_connection_option),
+                           f"the drive would not react as configured to a lost host ({reaction})"))
+        if self.consumer_ms is not None:
+            writes.append(("consumer_heartbeat_time",
+                           co.encode_consumer_heartbeat(self.host_node_id, self.consumer_ms)
+                           if self.consumer_ms else 0,
+                           "the drive would not watch the host's heartbeat as configured"))
+        for name, value, why in writes:
+            o = co.obj(name)
+            await self.sdo_write(o, value)
+            got = await self.sdo_read(o)
+            if got != value:
+                raise ConfigurationMismatch(self.name, o, value, got, why)
+            if name == "consumer_heartbeat_time":
+                self._consumer_set = True
+        self.liveness = {
+            "quick_stop_deceleration_rpm_s": await self.sdo_read("quick_stop_deceleration"),
+            "abort_connection_option": await self.sdo_read("abort_connection_option_code"),
+            "consumer": co.decode_consumer_heartbeat(
+                await self.sdo_read("consumer_heartbeat_time")),
+        }
+        log.info("epos4 liveness", device=self.name, host_node=self.host_node_id,
+                 **self.liveness)
 
     async def _setup_pdos(self) -> None:
         for pdo in PROJECT_PDOS:
@@ -589,8 +975,47 @@ class Epos4Driver:
         self._send_cycle()
         self.syncs_sent += 1
         out.append(now)
+        self._heartbeat(now)
         if wait:
             await self._wait_answered(self.syncs_sent, now + self.answer_timeout_s)
+
+    # ================================================================== host heartbeat
+    def feed(self) -> None:
+        """The control path is alive: call it every control tick (``read()`` does). While the
+        file is commanded to turn, a feed older than ``feed_timeout_s`` withholds the host's
+        heartbeat, and the drive stops the file ``consumer_ms`` later. Cheap: a clock read."""
+        self._fed_t = time.monotonic()
+        self.feeds += 1
+
+    def _file_commanded(self) -> bool:
+        """The drive is told to turn the file: a non-zero velocity, or a move not done."""
+        if self._mode == Mode.PROFILE_VELOCITY:
+            return self._target_vel != 0
+        return self._sp != "idle" and not self.move_done
+
+    def _heartbeat(self, now: float) -> None:
+        """Send the host's heartbeat when it is due, unless the control path went silent
+        while the file turns (see the module docstring)."""
+        if now - self._host_hb_t < self.host_heartbeat_period_s:
+            return
+        fed = self._fed_t
+        if (self.feed_timeout_s is not None and fed is not None
+                and now - fed > self.feed_timeout_s and self._file_commanded()):
+            self.withheld += 1
+            if not self._withholding:
+                self._withholding = True
+                log.error("epos4 host heartbeat withheld: the control path is silent while "
+                          "the file turns", device=self.name,
+                          silent_ms=round((now - fed) * 1e3),
+                          limit_ms=round(self.feed_timeout_s * 1e3),
+                          drive_stops_after_ms=self.consumer_ms)
+            return
+        if self._withholding:
+            self._withholding = False
+            log.warning("epos4 host heartbeat resumed", device=self.name)
+        self._host_hb_t = now
+        self.host_heartbeats += 1
+        self._send(self._host_hb_cob, co.encode_heartbeat(NmtState.OPERATIONAL))
 
     async def _wait_answered(self, n_syncs: int, deadline: float) -> bool:
         """Wait until SYNC number ``n_syncs`` is answered (or expired as lost)."""
@@ -785,7 +1210,10 @@ class Epos4Driver:
 
     async def read(self) -> MotorState:
         """Newest motor state at the file, without waiting; :class:`DeviceFault` if there is
-        none, it is stale, the heartbeat stopped, or the drive/link is faulted."""
+        none, it is stale, the heartbeat stopped, or the drive/link is faulted. Feeds the
+        control-path watchdog (:meth:`feed`): the control task reads every tick. Diagnostics
+        that must not count as the control path use :attr:`last`."""
+        self.feed()
         self._check_link()
         s = self._sample
         if s is None:
@@ -876,6 +1304,10 @@ class Epos4Driver:
         self._mode, self._target_vel, self._sp = int(Mode.PROFILE_VELOCITY), 0, "idle"
         self._cw = CONTROLWORD[Command.DISABLE_VOLTAGE]            # bit 7 low first
         await self._cycles(2, deadline)
+        # a drive takes the fault reset (transition 15) in FAULT only: let the fault reaction
+        # (a stop on the quick-stop ramp) end first
+        await self._drive_cycles_until(
+            lambda: self.state is not State.FAULT_REACTION_ACTIVE, deadline)
         self._cw = CONTROLWORD[Command.FAULT_RESET]
         ok = await self._drive_cycles_until(
             lambda: self.state not in (State.FAULT, State.FAULT_REACTION_ACTIVE), deadline)
@@ -948,9 +1380,35 @@ class Epos4Driver:
         self._sp = "idle"
         self._cw = CONTROLWORD[Command.QUICK_STOP]
 
+    async def set_current_limit(self, amps: float) -> None:
+        """Limit the motor current to ``amps`` (A): the output current limit 0x3001:02 (mA),
+        above which the drive's current controller clamps, so the torque at the file cannot
+        exceed ``amps x Km x gear x efficiency``. At most the motor's nominal current read at
+        start-up (0x3001:01). An SDO write read back (:class:`ConfigurationMismatch` if the
+        drive holds another value): call it before the control loop's first tick, never
+        inside the loop (devices.md: SDOs only at start-up)."""
+        amps = float(amps)
+        top = self.nominal_current_a or math.inf
+        if not (math.isfinite(amps) and 0.0 < amps <= top):
+            raise ConfigError("epos4.current_limit_a", amps,
+                              f"0 < A <= {top:g} (the motor's nominal current 0x3001:01)")
+        if not self._started:
+            raise DeviceFault(self.name, "set_current_limit: not connected")
+        o = co.obj("motor_output_current_limit")
+        value = max(1, round(amps * 1000.0))
+        await self.sdo_write(o, value)
+        got = await self.sdo_read(o)
+        if got != value:
+            raise ConfigurationMismatch(self.name, o, value, got,
+                                        "the drive would not limit the current as configured")
+        log.info("epos4 current limit", device=self.name, limit_ma=got)
+
     async def nmt(self, command: NmtCommand) -> None:
         """Send an NMT command to the drive (diagnostics; the start-up does what is needed)."""
         self._send(co.COB_BASE["NMT"], co.encode_nmt(command, self.node_id))
 
 
-__all__ = ["DEFAULT_COUNTS_PER_TURN", "Epos4Driver", "SdoAbort"]
+__all__ = ["DEFAULT_CONSUMER_MS", "DEFAULT_COUNTS_PER_TURN", "DEFAULT_FEED_TIMEOUT_S",
+           "DEFAULT_HOST_HEARTBEAT_PERIOD_S", "DEFAULT_HOST_NODE_ID",
+           "DEFAULT_QUICK_STOP_FILE_RPM_S", "ConfigurationMismatch", "Epos4Driver", "SdoAbort",
+           "SocketcandBus"]

@@ -7,6 +7,9 @@ samples. Units: lengths mm, angles deg, forces N, sensor torques N*m, speeds at 
 The interfaces are ``typing.Protocol`` classes with async methods (real drivers are asyncio);
 they are ``runtime_checkable`` so tests can check a device against them with ``isinstance``
 (which only checks that the methods exist).
+
+:class:`ConnectTimeout` is the typed error every driver raises when a device does not complete
+its connection in time (a peer that accepts the TCP connection and then says nothing).
 """
 
 from __future__ import annotations
@@ -15,6 +18,8 @@ from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+
+from dentibot.errors import DeviceFault
 
 Vec3 = tuple[float, float, float]
 Vec6 = tuple[float, float, float, float, float, float]
@@ -80,6 +85,20 @@ class AuxState:
     platform_mm: Vec3
 
 
+class ConnectTimeout(DeviceFault):
+    """A device did not complete its connection within its bound: nothing answered at
+    ``address`` ("host:port") what the driver was ``waiting_for`` within ``timeout_s``.
+
+    Every driver bounds its connection (TCP connect, greeting, identification, first answer):
+    a peer that accepts the TCP connection and then says nothing is a fault, never a hang."""
+
+    def __init__(self, device: str, address: str, waiting_for: str, timeout_s: float) -> None:
+        self.address = address
+        self.waiting_for = waiting_for
+        self.timeout_s = float(timeout_s)
+        super().__init__(device, f"{address}: no {waiting_for} within {timeout_s:g} s")
+
+
 @runtime_checkable
 class Arm(Protocol):
     """A 6-DoF arm driven in joint space (Meca500: MoveJointsVel / MoveJoints)."""
@@ -132,6 +151,11 @@ class Handpiece(Protocol):
 
     async def stop(self) -> None:
         """Stop turning."""
+        ...
+
+    async def set_current_limit(self, amps: float) -> None:
+        """Limit the motor current (A), hence the torque the file can be given (the drive's
+        own bound, set before the first tick)."""
         ...
 
 

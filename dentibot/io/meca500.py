@@ -28,6 +28,26 @@ A dropped link makes ``read()`` raise until ``reconnect()``. The robot pauses mo
 control connection drops; ``reconnect()`` re-reads the status and, if paused, leaves it so:
 ``paused`` is True and motion commands raise until an explicit ``resume_motion()``.
 
+Connection watchdog (devices.md: ``ConnectionWatchdog(t)`` answered [2177]): ``connect()``
+arms it with ``connection_watchdog_s`` and waits for [2177][1]; a robot that does not know the
+command fails the connection. Mecademic documents what the robot then does (mecademicpy,
+``Robot.ConnectionWatchdog``): unless the watchdog is refreshed by another
+``ConnectionWatchdog`` before it expires, the robot "will close the socket connections with
+this application, raise the MX_SAFE_STOP_CONNECTION_DROPPED safety stop condition, and pause
+motion"; only the command itself refreshes it, other traffic does not. The driver refreshes it
+(``-ConnectionWatchdog(t)``, the silent form the vendor's client uses) from the control path:
+whenever a command goes out, at every ``read()`` (the control task reads every tick) and while
+a request is awaited (activation, homing, checkpoints), each time at most every quarter of the
+timeout. So it stops with the process and with a frozen or stuck control task, which the
+velocity timeout covers for velocity streaming only: a queued ``MoveJoints`` runs to its end
+without the watchdog. Mecademic advises exactly this against its own automatic refresh, which
+"may continue to acknowledge the robot even if the application is unresponsive".
+
+Time bounds: ``connect()`` as a whole takes at most ``connect_timeout_s``; a peer that accepts
+the connection and never greets is a :class:`~dentibot.io.interfaces.ConnectTimeout` naming
+the address after ``response_timeout_s``; every request waits at most ``response_timeout_s``
+(``motion_timeout_s`` for activation, homing and checkpoints).
+
 Units: joint angles deg, joint velocities deg/s, times s (the robot's timestamps are us).
 """
 
@@ -44,9 +64,10 @@ from typing import Self
 import structlog
 
 from dentibot.errors import ConfigError, DeviceFault, ProtocolError
-from dentibot.io.interfaces import JointState
+from dentibot.io.interfaces import ConnectTimeout, JointState
 from dentibot.io.meca500_protocol import (
     COMMANDS,
+    CONNECTION_WATCHDOG_RANGE_S,
     CONTROL_PORT,
     DEFAULT_HOST,
     DEVICE,
@@ -150,6 +171,8 @@ class Meca500Driver:
         stale_after_s: ``read()`` raises when the newest cycle is older than this (s); None:
             never (the control task checks ``t`` and ``seq`` itself).
         max_frame_len: longest frame accepted from the robot (bytes).
+        connection_watchdog_s: ConnectionWatchdog timeout armed at connection (s; 0.2: a
+            control task stuck for 100 control periods loses the arm); 0 leaves it off.
     """
 
     device = DEVICE
@@ -160,7 +183,8 @@ class Meca500Driver:
                  response_timeout_s: float = 2.0, motion_timeout_s: float = 30.0,
                  realtime_monitoring: tuple[int, ...] = (2210, 2212),
                  stale_after_s: float | None = None,
-                 max_frame_len: int = MAX_FRAME_LEN) -> None:
+                 max_frame_len: int = MAX_FRAME_LEN,
+                 connection_watchdog_s: float = 0.2) -> None:
         self.host = host
         self.control_port = control_port
         self.monitor_port = monitor_port
@@ -175,6 +199,10 @@ class Meca500Driver:
             _in_range(f"meca500.{name}", v, 1e-3, 3600.0, "s")
         if stale_after_s is not None:
             _in_range("meca500.stale_after_s", stale_after_s, 1e-3, 3600.0, "s")
+        if connection_watchdog_s != 0:
+            _in_range("meca500.connection_watchdog_s", connection_watchdog_s,
+                      *CONNECTION_WATCHDOG_RANGE_S, "s (0 = off)")
+        self.connection_watchdog_s = float(connection_watchdog_s)
         self.connect_timeout_s = connect_timeout_s
         self.response_timeout_s = response_timeout_s
         self.motion_timeout_s = motion_timeout_s
@@ -197,6 +225,9 @@ class Meca500Driver:
         self.unsolicited_errors = 0  # 1xxx codes that answered no request (latched faults)
         self.commands_sent = 0
         self.reconnects = 0
+        self.watchdog_feeds = 0      # ConnectionWatchdog refreshes sent
+        self._watchdog_armed = False
+        self._watchdog_fed_t = -math.inf
         # internals
         self._ctrl: _Link | None = None
         self._mon: _Link | None = None
@@ -249,13 +280,16 @@ class Meca500Driver:
             return
         await self._teardown("reconnecting")
         self._reset_stream()
+        stage = ["TCP connection"]
         try:
-            await asyncio.wait_for(self._open(), self.connect_timeout_s)
+            await asyncio.wait_for(self._open(stage), self.connect_timeout_s)
         except TimeoutError:
             await self._teardown("connect timed out")
-            raise DeviceFault(DEVICE, f"no complete answer from {self.host}:{self.control_port}"
-                                      f" within connect_timeout_s = {self.connect_timeout_s} s"
-                              ) from None
+            raise ConnectTimeout(DEVICE, f"{self.host}:{self.control_port}", stage[0],
+                                 self.connect_timeout_s) from None
+        except ConnectTimeout:
+            await self._teardown("connect timed out")
+            raise
         except OSError as exc:
             await self._teardown(f"connect failed: {exc}")
             raise DeviceFault(DEVICE, f"cannot connect to {self.host}:{self.control_port} / "
@@ -264,23 +298,44 @@ class Meca500Driver:
             await self._teardown("connect failed")
             raise
 
-    async def _open(self) -> None:
+    async def _open(self, stage: list[str]) -> None:
         loop = asyncio.get_running_loop()
         self._link_error = None
+        self._watchdog_armed = False
         greeting = self._add_waiter("greeting", (3000, 3001), ())
         try:
             _, self._ctrl = await loop.create_connection(lambda: _Link(self, "control"),
                                                          self.host, self.control_port)
-            resp = await self._await(greeting, self.response_timeout_s)
+            stage[0] = "greeting [3000]"
+            try:
+                resp = await self._await(greeting, self.response_timeout_s)
+            except DeviceFault as exc:
+                if self._link_error is not None:
+                    raise
+                raise ConnectTimeout(DEVICE, f"{self.host}:{self.control_port}",
+                                     "greeting [3000]", self.response_timeout_s) from exc
         finally:
             self._remove_waiter(greeting)
+        stage[0] = "answer after the greeting"
         if resp.code == 3001:
             raise DeviceFault(DEVICE, f"[3001] control connection refused: {resp.payload!r} "
                                       f"(the robot accepts one control client at a time)")
         self.firmware = resp.payload
         await self.get_status()
+        if self.connection_watchdog_s:
+            stage[0] = f"answer to ConnectionWatchdog({self.connection_watchdog_s:g})"
+            armed = await self._request("ConnectionWatchdog", self.connection_watchdog_s,
+                                        check=False)
+            if armed.payload.strip() != "1":
+                raise DeviceFault(DEVICE, f"{self.host}:{self.control_port}: "
+                                          f"ConnectionWatchdog({self.connection_watchdog_s:g}) "
+                                          f"answered {armed.describe()}, not enabled")
+            self._watchdog_armed = True
+            self._watchdog_fed_t = time.monotonic()
+        stage[0] = f"monitoring connection on port {self.monitor_port}"
         _, self._mon = await loop.create_connection(lambda: _Link(self, "monitor"),
                                                     self.host, self.monitor_port)
+        stage[0] = "answers setting up the monitoring"
         self._send("SetMonitoringInterval", self.monitoring_interval_s, check=False)
         self.realtime_codes = ()
         if self.realtime_monitoring:
@@ -491,11 +546,32 @@ class Meca500Driver:
                 w.fail(exc)
 
     async def _await(self, w: _Waiter, timeout: float) -> Response:
-        try:
-            return await asyncio.wait_for(w.future, timeout)
-        except TimeoutError:
-            raise DeviceFault(DEVICE, f"no answer to {w.name} within {timeout} s (expected "
-                                      f"{sorted(w.expect)})") from None
+        """Wait for ``w``'s answer, refreshing the connection watchdog meanwhile (the caller
+        awaiting the robot is the control path: activation and homing take seconds)."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        slice_s = self.connection_watchdog_s / 4 if self.connection_watchdog_s else timeout
+        while not w.future.done():
+            left = deadline - loop.time()
+            if left <= 0:
+                raise DeviceFault(DEVICE, f"no answer to {w.name} within {timeout} s "
+                                          f"(expected {sorted(w.expect)})")
+            await asyncio.wait({w.future}, timeout=min(left, slice_s))
+            self._feed_watchdog()
+        return w.future.result()
+
+    def _feed_watchdog(self) -> None:
+        """Refresh the connection watchdog if a quarter of its time has passed since the last
+        refresh (``-ConnectionWatchdog(t)``; its [2177] answer needs no waiter)."""
+        if not self._watchdog_armed or self._ctrl is None or self._link_error is not None:
+            return
+        now = time.monotonic()
+        if now - self._watchdog_fed_t < self.connection_watchdog_s / 4:
+            return
+        self._watchdog_fed_t = now
+        self._ctrl.transport.write(encode_command("ConnectionWatchdog",
+                                                  self.connection_watchdog_s, silent=True))
+        self.watchdog_feeds += 1
 
     def _check_link(self) -> None:
         if self._link_error is not None or self._ctrl is None:
@@ -508,6 +584,7 @@ class Meca500Driver:
         data = encode_command(name, *args)
         self._ctrl.transport.write(data)
         self.commands_sent += 1
+        self._feed_watchdog()
 
     async def _request(self, name: str, *args: float, check: bool = True,
                        timeout: float | None = None, match: Callable | None = None) -> Response:
@@ -620,7 +697,9 @@ class Meca500Driver:
     # ------------------------------------------------------------------ Arm protocol
     async def read(self) -> JointState:
         """Newest joint state (measured joints 2210, else target 2200; velocities 2212);
-        ``t`` = monotonic reception time, ``seq`` = monitoring cycles received."""
+        ``t`` = monotonic reception time, ``seq`` = monitoring cycles received. Refreshes
+        the connection watchdog when due (the control task reads every tick)."""
+        self._feed_watchdog()
         if self._link_error is not None:
             raise DeviceFault(DEVICE, f"link down ({self._link_error}); call reconnect()")
         if (fault := self.fault) is not None:

@@ -62,6 +62,10 @@ MONITORING_INTERVAL_RANGE_S = (0.001, 1.0)
 MONITORING_INTERVAL_DEFAULT_S = 1.0 / 60.0
 #: SetCheckpoint ids accepted (devices.md: up to 8191; mecademicpy allows 1..8000).
 CHECKPOINT_ID_RANGE = (1, 8191)
+#: ConnectionWatchdog(t) timeouts the driver uses (s); 0 disables it. Mecademic documents
+#: "a non-zero value to enable or refresh" with no range; the bounds are this project's: below
+#: 5 ms no TCP link refreshes it reliably, beyond 60 s it watches nothing useful.
+CONNECTION_WATCHDOG_RANGE_S = (0.005, 60.0)
 
 
 # ---------------------------------------------------------------------------------- codes
@@ -228,7 +232,7 @@ COMMANDS: dict[str, CommandSpec] = {spec.name.lower(): spec for spec in (
     CommandSpec("SetRealTimeMonitoring", (1, 16), answers=(2117,), errors=(1001, 1003)),
     CommandSpec("SetCtrlPortMonitoring", (1, 1), answers=(2096,), errors=(1003,)),
     CommandSpec("SyncCmdQueue", (1, 1), answers=(2097,), errors=(1003,)),
-    CommandSpec("ConnectionWatchdog", (1, 1), answers=(2177,), errors=(1003,)),
+    CommandSpec("ConnectionWatchdog", (1, 1), answers=(2177,), errors=(1001, 1003)),
     CommandSpec("SetRtc", (1, 1)),
     CommandSpec("MoveJoints", (6, 6), errors=(*_MOTION_ERRORS, 1007), queued=True,
                 requires="homed"),

@@ -27,7 +27,7 @@ from typing import Self
 import structlog
 
 from dentibot.errors import ConfigError, DeviceFault, ProtocolError
-from dentibot.io.interfaces import Wrench
+from dentibot.io.interfaces import ConnectTimeout, Wrench
 from dentibot.io.netft_protocol import (
     CALIBRATION_PATH,
     DEVICE,
@@ -84,7 +84,9 @@ class NetFTDriver:
         counts_per_torque: counts per N*m; ``None`` reads ``cfgcpt``/``scfgtu``.
         stale_after_s: ``read()`` faults if the newest record is older than this (s). Default
             0.02 s: ten 500 Hz control periods, many records at any RDT rate >= 500 Hz.
-        http_timeout_s: limit for the whole calibration-page exchange (s).
+        http_timeout_s: limit for the whole calibration-page exchange (s): TCP connection,
+            request, the whole answer; a box that accepts and never (or too slowly) answers
+            is a :class:`~dentibot.io.interfaces.ConnectTimeout` naming the address.
         name: device name in errors and logs.
     """
 
@@ -242,8 +244,9 @@ class NetFTDriver:
         try:
             data = await asyncio.wait_for(self._http_get(), self.http_timeout_s)
         except TimeoutError:
-            raise DeviceFault(self.name, f"{url}: no answer within "
-                                         f"{self.http_timeout_s:g} s") from None
+            raise ConnectTimeout(self.name, f"{self.host}:{self.http_port}",
+                                 f"complete answer to GET {CALIBRATION_PATH}",
+                                 self.http_timeout_s) from None
         except OSError as exc:
             raise DeviceFault(self.name, f"{url}: {exc}") from exc
         status, body = parse_http_response(data)

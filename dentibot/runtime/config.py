@@ -11,7 +11,7 @@ import math
 from dataclasses import dataclass, field
 
 from dentibot.control.admittance import AdmittanceParams
-from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM, FeedrateParams
+from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM, FeedrateParams, file_torque_from_current
 from dentibot.errors import ConfigError
 from dentibot.states.strategies import StrategyParams
 from dentibot.runtime.supervisor import SupervisorLimits
@@ -49,6 +49,12 @@ class HandpieceConfig:
     reversal_deg: float = 90.0         # thesis 5.2: turn back 90 deg
     reversal_timeout_s: float = 2.0    # assumption: a reversal that takes longer is a fault
 
+    def current_for(self, torque_mnm: float) -> float:
+        """The motor current (A) that gives the file ``torque_mnm`` (eq 5.4-5.5 inverted, plus
+        the no-load current the motor spends on itself)."""
+        return torque_mnm / file_torque_from_current(1.0, self.efficiency) + \
+            self.friction_current_a
+
     def __post_init__(self) -> None:
         _check("handpiece.efficiency", self.efficiency, 0.3, 1.0)
         _check("handpiece.friction_current_a", self.friction_current_a, 0.0, 0.2, "A")
@@ -74,6 +80,8 @@ class Thresholds:
     # not a contact force (an F/T offset drift): fault, before the tip sweeps the canal.
     drift_window_s: float = 0.3
     drift_travel_mm: float = 2.0
+    # the file's torsional strength (thesis eq 5.5: 62 mNm), from the protocol's file
+    file_strength_mnm: float = FILE_TORQUE_LIMIT_MNM
     # assumption: hard file-torque limit 90 % of the 62 mNm strength: stop and reverse.
     torque_limit_mnm: float = 0.9 * FILE_TORQUE_LIMIT_MNM
     # assumption: apical force cap 3 N along the file (retract above it).
@@ -93,9 +101,25 @@ class Thresholds:
         _check("limits.patient_moved_n", self.patient_moved_n, 0.2, 10.0, "N")
         _check("limits.patient_release_n", self.patient_release_n, 0.05, self.patient_moved_n,
                "N")
-        _check("limits.torque_limit_mnm", self.torque_limit_mnm, 1.0, FILE_TORQUE_LIMIT_MNM,
+        _check("limits.file_strength_mnm", self.file_strength_mnm, 1.0, 200.0, "mNm")
+        _check("limits.torque_limit_mnm", self.torque_limit_mnm, 1.0, self.file_strength_mnm,
                "mNm")
         _check("limits.axial_force_limit_n", self.axial_force_limit_n, 0.5, 20.0, "N")
+
+
+    @property
+    def drive_limit_mnm(self) -> float | None:
+        """The torque the drive's own current limit is set to (:attr:`file_safe_mnm`): the
+        hardware bounds the file's torque even if the software stalls. None when the runtime's
+        limit is the file's strength itself (a study without the runtime's net)."""
+        return self.file_safe_mnm if self.torque_limit_mnm < self.file_strength_mnm else None
+
+    @property
+    def file_safe_mnm(self) -> float:
+        """Halfway between the runtime's torque limit and the file's strength: what the file
+        may see while the runtime's reaction (a reversal: about 10 ms for the drive to turn the
+        file round) takes effect."""
+        return 0.5 * (self.torque_limit_mnm + self.file_strength_mnm)
 
 
 @dataclass(frozen=True)

@@ -118,6 +118,12 @@ class Runtime:
         await stop_all(self.dev.motor, self.dev.arm, self.unfinished_stops)
         self.file_cmd = ("stop",)
 
+    async def prepare(self) -> None:
+        """Before the first tick: the drive's current limit from the file's strength."""
+        limit = self.cfg.thresholds.drive_limit_mnm
+        if limit is not None:
+            await self.dev.motor.set_current_limit(self.cfg.handpiece.current_for(limit))
+
     def configure(self, *, plan=None, handpiece=None, restart_strategy: bool = False) -> None:
         """A new plan and/or handpiece settings from the next tick (a step's set-up, between
         two ticks); ``restart_strategy``: a fresh drilling strategy from the plan's."""
@@ -226,8 +232,8 @@ class Runtime:
             return None, findings
         est = self._estimate(np.asarray(js.q_deg, dtype=float), w.as_array(), m)
         if not findings:
-            findings = self.supervisor.observe(self.file_cmd, m, est,
-                                               self.mode.arm == "admittance")
+            findings = self.supervisor.observe(self.file_cmd, m, est, self.ctx.depth_ref
+                                               is not None and self.mode.arm == "admittance")
         if not findings and self.gravity is not None:
             turning = self.mode.file in ("forward", "align") and abs(m.velocity_rpm) > 5.0
             findings = self.supervisor.check_estimate(

@@ -154,25 +154,34 @@ class FractureObserver:
 
 
 class TipSpeedObserver:
-    """The tip's measured speed (successive kinematic positions) against a bound: what the arm
-    does, not what it was told (a drifting force reading can drive it anywhere)."""
+    """The tip's measured speed (its kinematic position over the last ``window`` ticks)
+    against a bound: what the arm does, not what it was told (a drifting force reading can
+    drive it anywhere). Over a window, so that a joint sample that arrived a period late (real
+    time) does not read as a doubled speed."""
+
+    window = 5
 
     def __init__(self, ts: float, limits: ObserverLimits) -> None:
         self.ts, self.lim = ts, limits
-        self._last = None
+        self._tips: collections.deque = collections.deque(maxlen=self.window + 1)
         self._bad = 0
 
     def check(self, tip_0) -> list[Finding]:
         """``tip_0`` None: not watched this tick (the arm is scripted or stopped)."""
-        last, self._last = self._last, None if tip_0 is None else tuple(tip_0)
-        if last is None or tip_0 is None:
+        tips = self._tips
+        if tip_0 is None:
+            tips.clear()
             self._bad = 0
             return []
-        v = math.dist(last, tip_0) / self.ts
+        tips.append(tuple(tip_0))
+        if len(tips) < 2:
+            return []
+        v = math.dist(tips[0], tips[-1]) / ((len(tips) - 1) * self.ts)
         self._bad = self._bad + 1 if v > self.lim.tip_speed_mm_s else 0
         if self._bad * self.ts >= self.lim.persist_s:
             return [Finding("tip_speed_measured",
-                            f"file tip moving at {v:.0f} mm/s (measured) for "
+                            f"file tip moving at {v:.0f} mm/s (measured over "
+                            f"{1000 * (len(tips) - 1) * self.ts:.0f} ms) for "
                             f"{1000 * self._bad * self.ts:.0f} ms: above "
                             f"{self.lim.tip_speed_mm_s:g} mm/s")]
         return []

@@ -121,16 +121,17 @@ class Supervisor:
         self.fracture = FractureObserver(ts, olim)
         self.tip_speed = TipSpeedObserver(ts, olim)
 
-    def observe(self, file_cmd, m, est, force_controlled: bool) -> list[Finding]:
+    def observe(self, file_cmd, m, est, near_patient: bool) -> list[Finding]:
         """The observers (:mod:`dentibot.runtime.observers`): the handpiece against its
-        command, file fracture, and (while the arm follows forces: the file near the patient)
-        the tip's measured speed."""
+        command, file fracture, and (``near_patient``: the arm follows forces with the file at
+        the tooth, from alignment on; not while the operator drags or calibrates) the tip's
+        measured speed."""
         forward = file_cmd[1] if file_cmd is not None and file_cmd[0] == "vel" \
             and file_cmd[1] > 0.0 else None
         return [*self.spindle.check(file_cmd, m.velocity_rpm, m.enabled, est.file_torque_mnm),
                 *self.fracture.check(forward, m.velocity_rpm, est.file_torque_mnm,
                                      est.depth_mm),
-                *self.tip_speed.check(est.tip_0 if force_controlled else None)]
+                *self.tip_speed.check(est.tip_0 if near_patient else None)]
 
     def check_inputs(self, k: int, js, w, m, aux) -> list[Finding]:
         out: list[Finding] = []

@@ -26,7 +26,12 @@ The host watchdog is the one thing that runs between requests: a task checks it 
 (real time, as a PLC's scan cycle would). Once armed (``watchdog_ms`` > 0), no new
 ``host_watchdog`` value for that long sets ``host_lost``, switches the DRILLING lamp off and
 the FAULT lamp on, and holds the platform setpoint where it is; the next new value clears
-``host_lost`` (the lamps stay as they are until the host writes them).
+``host_lost`` (the lamps stay as they are until the host writes them). ``host_lost`` is also
+a relay output: the callables in :attr:`AuxModbusServer.host_lost_outputs` are called with
+True when it is set and False when it clears. In ``dentibot sim serve`` it opens the
+handpiece drive's safe-torque-off input, in series with the emergency stop (the clinic's
+safety relay chain), so that a dead host stops the file within the watchdog time even when
+nothing else does (``docs/device-liveness.md``).
 
 Unpleasant parts, as a real PLC: a setpoint outside the limits (or a half-written int32 that
 decodes outside them) is refused with exception 3 (illegal data value) and leaves the World
@@ -39,6 +44,7 @@ a frozen World freezes the heartbeat; ``close()`` drops every client connection.
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable
 from typing import Self
 
 import structlog
@@ -103,6 +109,9 @@ class AuxModbusServer:
         self.host_watchdog = 0
         self.host_lost = False
         self.watchdog_expiries = 0
+        #: the host-lost relay output: called with True when the watchdog expires, False
+        #: when the host comes back (a new host_watchdog value)
+        self.host_lost_outputs: list[Callable[[bool], None]] = []
         self._fed_at = 0.0
         self._server: ModbusTcpServer | None = None
         self._watchdog: asyncio.Task | None = None
@@ -178,12 +187,22 @@ class AuxModbusServer:
             await asyncio.sleep(0.01)
             if (self.watchdog_ms and not self.host_lost
                     and loop.time() - self._fed_at > self.watchdog_ms / 1000.0):
-                self.host_lost = True
                 self.watchdog_expiries += 1
                 self.world.indicators["drilling"] = False
                 self.world.indicators["fault"] = True
                 log.warning("aux_modbus_server.host_lost", watchdog_ms=self.watchdog_ms,
                             platform_held_mm=self.world.platform_mm)
+                self._set_host_lost(True)
+
+    def _set_host_lost(self, lost: bool) -> None:
+        if lost == self.host_lost:
+            return
+        self.host_lost = lost
+        for output in self.host_lost_outputs:
+            try:
+                output(lost)
+            except Exception:                 # a PLC output never stops the scan
+                log.exception("aux_modbus_server.host_lost_output_failed")
 
     def _feed(self, value: int, watchdog_ms: int) -> None:
         """A holding-register write: a new watchdog time arms it from now; a new
@@ -195,7 +214,7 @@ class AuxModbusServer:
         if value != self.host_watchdog:
             self.host_watchdog = value
             self._fed_at = now
-            self.host_lost = False
+            self._set_host_lost(False)
 
     # ------------------------------------------------------------------ World <-> image
     def platform_actual_mm(self) -> tuple[float, float, float]:

@@ -79,6 +79,9 @@ class SimHandpiece:
     async def stop(self) -> None:
         self.world.handpiece.stop()
 
+    async def set_current_limit(self, amps: float) -> None:
+        self.world.handpiece.set_current_limit(amps)
+
 
 class SimAux:
     """Pedal, e-stop, indicators and the patient platform (implements ``dentibot.io.AuxIO``)."""

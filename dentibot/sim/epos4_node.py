@@ -13,6 +13,19 @@ What it does (all framing from :mod:`dentibot.io.canopen_protocol`):
   OPERATIONAL; EMCY in PRE-OPERATIONAL and OPERATIONAL. Leaving OPERATIONAL while the drive is
   enabled applies the abort connection option code 0x6007 (default 3: quick stop).
 - Heartbeat producer: every 0x1017 ms (constructor ``heartbeat_period_s``; 0 = off).
+- Heartbeat consumer (CiA 301, object 1016h): entry 0x1016:01 = producer node id << 16 |
+  consumer time ms (power-on 0: off). Monitoring starts at the first heartbeat received from
+  that node and restarts with each one; when none comes for the consumer time the node
+  signals a heartbeat error -- error code 0x8130, error register bit "communication", EMCY
+  -- and applies 0x6007 (CiA 402): 0 nothing more, 1 the fault reaction (the quick-stop ramp,
+  then FAULT), 2 disable voltage at once, 3 quick stop (the quick-stop ramp, then 0x605A). The
+  consumer watches again from the next heartbeat. Consumer time and node id are read back as
+  written.
+- Quick stop and fault reaction (CiA 402): the motor decelerates from its actual speed to 0
+  on a ramp of 0x6085 (motor rpm/s, updated every millisecond), the power stage staying on;
+  then FAULT (fault reaction) or what 0x605A says (quick stop: 6 stay in QUICK STOP ACTIVE,
+  the power-on value, 2 switch on disabled). The World's handpiece follows the ramp through
+  its own speed loop. Errors where the power stage cannot brake (STO) switch it off at once.
 - Expedited SDO server over an object dictionary built from
   :data:`~dentibot.io.canopen_protocol.OBJECTS` (aborts: no object 0x06020000, no sub
   0x06090011, read-only 0x06010002, length 0x06070010, bad value 0x06090030, segmented
@@ -31,10 +44,14 @@ What it does (all framing from :mod:`dentibot.io.canopen_protocol`):
   absolute), set-point acknowledge in statusword bit 12 until bit 4 drops, target reached
   bit 10; halt (bit 8) stops. Only in OPERATION ENABLED; leaving it stops the handpiece
   (the world model has no coasting).
-- Faults: EMCY + FAULT when the world's file fractures (code :data:`FRACTURE_EMCY_CODE`),
-  on :meth:`Epos4Node.inject_emcy`, or when the STO (world.estop) drops while the power stage
-  is on (0x8A88 STO error; assumption). With STO active the drive refuses to switch on and
-  stays in READY TO SWITCH ON (assumption). Fault reset (15) sends EMCY 0x0000.
+- Faults: EMCY + FAULT on :meth:`Epos4Node.inject_emcy`, on a lost host heartbeat (above),
+  or when the safe torque off opens while the power stage is on (0x8A88 STO error;
+  assumption). The STO input is open while the World's emergency stop is pressed or any
+  source given to :meth:`Epos4Node.set_sto` holds it open (in ``dentibot sim serve``: the aux
+  I/O's host-lost output, wired into the same safety chain). With STO open the drive refuses
+  to switch on and stays in READY TO SWITCH ON (assumption). Fault reset (15) sends EMCY
+  0x0000. The drive knows nothing of the file beyond its own motor: a fractured file is not
+  a drive error (the controller detects it from torque and speed).
 
 Scaling: velocity (rpm, motor side) = ``omega_rpm * gear``; position (inc) = ``pos_deg * gear
 * counts_per_turn / 360`` wrapped into INTEGER32; current 0x30D1:01 (mA) = ``current_a *
@@ -58,16 +75,20 @@ import structlog
 from dentibot.errors import ConfigError, ProtocolError
 from dentibot.io import canopen_protocol as co
 from dentibot.io.canopen_protocol import (
+    CW_FAULT_RESET,
     CW_HALT,
     CW_NEW_SETPOINT,
     CW_RELATIVE,
+    HEARTBEAT_ERROR_CODE,
     PDO_COB_INVALID,
+    QUICK_STOP_OPTIONS,
     SW_INTERNAL_LIMIT,
     SW_REMOTE,
     SW_SETPOINT_ACK,
     SW_SPEED_ZERO,
     SW_TARGET_REACHED,
     SW_VOLTAGE_ENABLED,
+    AbortConnectionOption,
     Mode,
     NmtCommand,
     NmtState,
@@ -78,10 +99,6 @@ from dentibot.sim.world import World
 
 log = structlog.get_logger(__name__)
 
-#: EMCY code the node sends when the World's file fractures. A drive cannot see a fracture;
-#: what it sees is the jam just before it, reported here as a following error (assumption,
-#: a stand-in so that the driver's fault path can be exercised).
-FRACTURE_EMCY_CODE = 0x8611
 #: EMCY code when the safe torque off drops while the power stage is on (assumption).
 STO_EMCY_CODE = 0x8A88
 #: EMCY code of an RxPDO with the wrong length (CiA 301 "PDO not processed due to length").
@@ -95,6 +112,8 @@ VENDOR_ID = 0x0000_00FB
 #: threshold, both in motor rpm (assumptions; the EPOS4 has its own parameters).
 VELOCITY_WINDOW_RPM = 20
 SPEED_ZERO_RPM = 10
+#: States in which the drive brakes the motor on the quick-stop ramp, power stage on.
+_BRAKING = frozenset({State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE})
 #: States in which the power stage is on (statusword bit 4, voltage enabled).
 _POWERED = frozenset({State.READY_TO_SWITCH_ON, State.SWITCHED_ON, State.OPERATION_ENABLED,
                       State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE})
@@ -102,10 +121,13 @@ _SUPPORTED_MODES = frozenset({Mode.PROFILE_POSITION, Mode.PROFILE_VELOCITY})
 #: Objects whose writing (SDO or RxPDO) feeds the drive logic.
 _DRIVE_OBJECTS = frozenset({"controlword", "modes_of_operation", "target_velocity",
                             "target_position", "profile_velocity"})
-#: Abort connection option code (0x6007) -> what happens to an enabled drive when the node
-#: leaves OPERATIONAL (CiA 402): None nothing, "fault", or a command.
-_ABORT_CONNECTION: dict[int, str | None] = {0: None, 1: "fault", 2: "disable voltage",
-                                            3: "quick stop"}
+#: Quick-stop ramp update period (s): the drive's profile generator, as seen by the World.
+RAMP_STEP_S = 0.001
+#: Power-on values of the quick-stop / fault-reaction objects (CiA 402 / assumption):
+#: 0x6007 3 quick stop, 0x605A 6 stay in QUICK STOP ACTIVE, 0x6085 10,000 motor rpm/s.
+POWER_ON_ABORT_CONNECTION = int(AbortConnectionOption.QUICK_STOP)
+POWER_ON_QUICK_STOP_OPTION = 6
+POWER_ON_QUICK_STOP_DECEL = 10_000
 
 
 class _Abort(Exception):
@@ -122,6 +144,7 @@ class Epos4Node:
         bus: a python-can bus (e.g. ``virtual`` channel); owned by the caller.
         node_id: CANopen node id 1..127.
         heartbeat_period_s: default producer heartbeat time 0x1017 (s; 0 = off). 0.1 s.
+            The consumer 0x1016:01 is off at power-on: the master configures it.
         encoder_counts_per_turn: main sensor resolution 0x3000:05 (increments per motor turn).
             2048 = a 512-pulse quadrature encoder (assumption for the handpiece motor).
         name: device name in logs.
@@ -177,7 +200,13 @@ class Epos4Node:
         self._internal_limit = False
         self._error_code = 0
         self._error_register = 0
-        self._fracture_reported = False
+        self.heartbeats_consumed = 0     # heartbeats received from the watched producer
+        self.heartbeat_errors = 0        # consumer time expired
+        self._consumer: tuple[int, float] | None = None    # (producer node, seconds)
+        self._consumer_timer: asyncio.TimerHandle | None = None
+        self._sto_open: set[str] = set()
+        self._ramp_task: asyncio.Task | None = None
+        self._ramp_then: State | None = None
         self._notifier: can.Notifier | None = None
         self._hb_task: asyncio.Task | None = None
         self._started = False
@@ -194,7 +223,7 @@ class Epos4Node:
             "modes_of_operation_display": lambda: self._mode_display,
             "error_code": lambda: self._error_code,
             "error_register": lambda: self._error_register,
-            "sto_inputs": lambda: 0x00 if self.world.estop else 0x03,
+            "sto_inputs": lambda: 0x00 if self.sto_active else 0x03,
         }
 
     # ------------------------------------------------------------------ lifecycle
@@ -216,6 +245,8 @@ class Epos4Node:
         if self._closed:
             return
         self._closed = True
+        self._disarm_consumer()
+        await self._cancel_ramp()
         if self._hb_task is not None:
             self._hb_task.cancel()
             try:
@@ -242,6 +273,29 @@ class Epos4Node:
         if not 0 < code <= 0xFFFF:
             raise ConfigError("epos4_node.emcy_code", code, "1..0xFFFF (0 means no error)")
         self._fault(code, register, manufacturer)
+
+    def set_sto(self, source: str, open_: bool) -> None:
+        """Open (or close) the safe-torque-off input on behalf of ``source`` (a name, e.g.
+        the aux I/O's host-lost relay). The input is open while any source holds it open or
+        the World's emergency stop is pressed; opening it while the power stage is on is an
+        STO error (FAULT, the power stage off at once). Closing it again does not clear the
+        fault: the master resets it."""
+        if open_:
+            self._sto_open.add(source)
+            log.warning("epos4 sim STO open", node=self.node_id, source=source)
+            self._poll_world()
+        else:
+            self._sto_open.discard(source)
+
+    @property
+    def sto_active(self) -> bool:
+        """The STO input is open (the power stage cannot be switched on)."""
+        return bool(self.world.estop or self._sto_open)
+
+    @property
+    def consumer(self) -> tuple[int, float] | None:
+        """(watched node id, consumer time s) from 0x1016:01, or None when off."""
+        return self._consumer
 
     def value(self, name: str) -> int:
         """Current value of object ``name`` as an SDO upload would return it."""
@@ -276,8 +330,8 @@ class Epos4Node:
             "gear_reduction_numerator": gear.numerator,
             "gear_reduction_denominator": gear.denominator,
             "controlword": 0,
-            "abort_connection_option_code": 3,
-            "quick_stop_option_code": 6,
+            "abort_connection_option_code": POWER_ON_ABORT_CONNECTION,
+            "quick_stop_option_code": POWER_ON_QUICK_STOP_OPTION,
             "modes_of_operation": 0,
             "target_torque": 0,
             "motor_rated_torque": round(km_unm * nominal_ma / 1000),
@@ -285,7 +339,7 @@ class Epos4Node:
             "profile_velocity": round(p.move_rpm * self.gear_ratio),
             "profile_acceleration": 10000,
             "profile_deceleration": 10000,
-            "quick_stop_deceleration": 10000,
+            "quick_stop_deceleration": POWER_ON_QUICK_STOP_DECEL,
             "target_velocity": 0,
         }.items():
             self._od[co.obj(name).address] = value
@@ -293,10 +347,12 @@ class Epos4Node:
         self._sp_ack = False
         self._internal_limit = False
         self._error_code = self._error_register = 0
+        self._stop_ramp_now()
         if self.state is not State.SWITCH_ON_DISABLED:
             self._set_state(State.SWITCH_ON_DISABLED, "reset")
         hp.stop()
         hp.enabled = False
+        hp.set_current_limit(nominal_ma / 1000.0)     # 0x3001:02 at its power-on value
 
     def _reset_communication(self) -> None:
         """Power-on values of the communication objects (0x1000-0x1FFF). The default PDO
@@ -307,6 +363,8 @@ class Epos4Node:
         for name, value in {
             "device_type": DEVICE_TYPE,
             "producer_heartbeat_time": round(self.heartbeat_period_s * 1000),
+            "consumer_heartbeat_count": 1,
+            "consumer_heartbeat_time": 0,
             "vendor_id": VENDOR_ID,
             "product_code": 0,
         }.items():
@@ -338,6 +396,7 @@ class Epos4Node:
         for direction in ("rx", "tx"):
             for n in range(1, 5):
                 self._rebuild_layout(direction, n)
+        self._configure_consumer()
         self._pending_rpdo.clear()
         self._sync_count = 0
 
@@ -417,7 +476,10 @@ class Epos4Node:
         cid = msg.arbitration_id
         data = bytes(msg.data)
         try:
-            if cid == co.COB_BASE["NMT"]:
+            consumer = self._consumer
+            if consumer is not None and cid == co.COB_BASE["HEARTBEAT"] + consumer[0]:
+                self._on_consumed_heartbeat(data)
+            elif cid == co.COB_BASE["NMT"]:
                 self._on_nmt(data)
             elif cid == co.COB_BASE["SYNC"]:
                 self._on_sync(data)
@@ -460,21 +522,79 @@ class Epos4Node:
             self._boot()
 
     def _leave_operational(self) -> None:
-        """Abort connection option code 0x6007 applied to an enabled drive."""
+        """NMT takes an enabled node out of OPERATIONAL: an abort connection event (CiA 402,
+        0x6007); not an error in itself, so no EMCY unless the option is "fault"."""
         if self.nmt_state is not NmtState.OPERATIONAL:
             return
         if self.state not in (State.OPERATION_ENABLED, State.SWITCHED_ON):
             return
-        action = _ABORT_CONNECTION.get(self._od[co.obj("abort_connection_option_code").address])
-        if action == "fault":
-            self._fault(0x8130)
-        elif action == "disable voltage":
-            self._set_state(State.SWITCH_ON_DISABLED, "9 (abort connection)")
-        elif action == "quick stop":
-            if self.state is State.OPERATION_ENABLED:
-                self._set_state(State.QUICK_STOP_ACTIVE, "11 (abort connection)")
-            else:
+        self._abort_connection(None)
+
+    def _abort_connection(self, error_code: int | None) -> None:
+        """Apply the abort connection option code 0x6007 (CiA 402). ``error_code``: the
+        communication error behind the event (0x8130 for a lost heartbeat), signalled by EMCY
+        whatever the option; None for an NMT-commanded exit."""
+        raw = self._od[co.obj("abort_connection_option_code").address]
+        try:
+            option = AbortConnectionOption(raw)
+        except ValueError:                      # manufacturer-specific values: act as fault
+            option = AbortConnectionOption.FAULT
+        if option is AbortConnectionOption.FAULT:
+            self._fault(error_code or HEARTBEAT_ERROR_CODE)
+            return
+        if error_code is not None:
+            self._error_code = error_code
+            self._error_register = co.error_register_for(error_code)
+            self._send_emcy(error_code, self._error_register)
+        st = self.state
+        if option is AbortConnectionOption.DISABLE_VOLTAGE:
+            if st in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE, State.SWITCHED_ON,
+                      State.READY_TO_SWITCH_ON):
+                self._power_off(State.SWITCH_ON_DISABLED, "9 (abort connection)")
+        elif option is AbortConnectionOption.QUICK_STOP:
+            if st is State.OPERATION_ENABLED:
+                self._quick_stop("11 (abort connection)")
+            elif st in (State.SWITCHED_ON, State.READY_TO_SWITCH_ON):
                 self._set_state(State.SWITCH_ON_DISABLED, "10 (abort connection)")
+
+    # ------------------------------------------------------------------ heartbeat consumer
+    def _configure_consumer(self) -> None:
+        """(Re)read 0x1016:01; monitoring of the producer starts at its next heartbeat."""
+        self._disarm_consumer()
+        word = self._od[co.obj("consumer_heartbeat_time").address]
+        if co.consumer_entry_active(word):
+            node, ms = co.decode_consumer_heartbeat(word)
+            self._consumer = (node, ms / 1000.0)
+            log.info("epos4 sim heartbeat consumer", node=self.node_id, producer=node,
+                     consumer_ms=ms)
+        else:
+            self._consumer = None
+
+    def _disarm_consumer(self) -> None:
+        if self._consumer_timer is not None:
+            self._consumer_timer.cancel()
+            self._consumer_timer = None
+
+    def _on_consumed_heartbeat(self, data: bytes) -> None:
+        co.decode_heartbeat(data)               # a malformed frame is not a heartbeat
+        if self._consumer is None or self.nmt_state is NmtState.BOOT_UP:
+            return
+        self.heartbeats_consumed += 1
+        self._disarm_consumer()
+        loop = asyncio.get_running_loop()
+        self._consumer_timer = loop.call_later(self._consumer[1], self._consumer_expired)
+
+    def _consumer_expired(self) -> None:
+        """No heartbeat from the watched producer for the consumer time (CiA 301 heartbeat
+        event): EMCY 0x8130 and the abort connection option code."""
+        self._consumer_timer = None
+        if self._closed or self._consumer is None or self.nmt_state is NmtState.BOOT_UP:
+            return
+        self.heartbeat_errors += 1
+        log.warning("epos4 sim heartbeat lost", node=self.node_id, producer=self._consumer[0],
+                    consumer_ms=round(self._consumer[1] * 1000), state=self.state.value)
+        self._poll_world()
+        self._abort_connection(HEARTBEAT_ERROR_CODE)
 
     async def _heartbeat_loop(self) -> None:
         while True:
@@ -539,6 +659,24 @@ class Epos4Node:
         if 0x1400 <= o.index <= 0x1BFF:
             self._write_pdo_parameter(o, value)
             return
+        if o.name == "consumer_heartbeat_time":
+            node, ms = co.decode_consumer_heartbeat(value)
+            if ms and node == self.node_id:
+                raise _Abort(0x0604_0043)       # watching itself: parameter incompatibility
+            self._od[o.address] = value
+            self._configure_consumer()
+            return
+        if o.name == "motor_output_current_limit":
+            nominal = self._od[co.obj("motor_nominal_current").address]
+            if not 0 < value <= nominal:
+                raise _Abort(0x0609_0031 if value > nominal else 0x0609_0032)
+            self._od[o.address] = value
+            self.world.handpiece.set_current_limit(value / 1000.0)   # the current controller
+            return
+        if o.name == "abort_connection_option_code" and value not in (0, 1, 2, 3):
+            raise _Abort(0x0609_0030)
+        if o.name == "quick_stop_option_code" and value not in QUICK_STOP_OPTIONS:
+            raise _Abort(0x0609_0030)
         prev_cw = self._od[co.obj("controlword").address]
         self._od[o.address] = value
         if o.name in _DRIVE_OBJECTS:
@@ -644,7 +782,12 @@ class Epos4Node:
             self.syncs_answered += 1
 
     # ------------------------------------------------------------------ CiA 402 drive
-    def _set_state(self, new: State, transition: str | None) -> None:
+    def _set_state(self, new: State, transition: str | None, *,
+                   braking: bool = False) -> None:
+        """Enter ``new``. Leaving OPERATION ENABLED stops the motor at once and switches the
+        power stage off, unless ``braking``: then a quick-stop ramp brings it to rest first
+        (QUICK STOP ACTIVE, FAULT REACTION ACTIVE), and the power stage goes off when the
+        drive leaves those states for one without power."""
         old = self.state
         if new is old:
             return
@@ -652,15 +795,91 @@ class Epos4Node:
         if transition:
             self.transitions.append(transition)
         hp = self.world.handpiece
+        if new not in _BRAKING and self._ramp_task is not None:
+            self._stop_ramp_now()                # left a braking state another way
         if old is State.OPERATION_ENABLED:
+            self._sp_ack = False
+            if not braking:
+                hp.stop()
+                hp.enabled = False
+        elif old in _BRAKING and new is not State.OPERATION_ENABLED and new not in _BRAKING:
             hp.stop()
             hp.enabled = False
-            self._sp_ack = False
         if new is State.OPERATION_ENABLED:
             hp.enabled = True
             self._enter_mode()
         log.debug("epos4 sim state", node=self.node_id, old=old.value, new=new.value,
                   transition=transition)
+
+    # ------------------------------------------------------------------ quick-stop ramp
+    def _quick_stop(self, transition: str) -> None:
+        """CiA 402 quick stop from OPERATION ENABLED: QUICK STOP ACTIVE, the ramp, then what
+        0x605A says."""
+        self._set_state(State.QUICK_STOP_ACTIVE, transition, braking=True)
+        self._start_ramp()
+
+    def _power_off(self, new: State, transition: str) -> None:
+        """Disable voltage: the power stage off at once, no ramp."""
+        self._stop_ramp_now()
+        self._set_state(new, transition)
+        self.world.handpiece.stop()
+        self.world.handpiece.enabled = False
+
+    def _decel_file_rpm_s(self) -> float:
+        return self._od[co.obj("quick_stop_deceleration").address] / self.gear_ratio
+
+    def _start_ramp(self) -> None:
+        """Decelerate from the actual speed at 0x6085; a ramp already running goes on."""
+        if self._ramp_task is not None and not self._ramp_task.done():
+            return
+        hp = self.world.handpiece
+        decel = self._decel_file_rpm_s()
+        v0 = hp.omega_rpm
+        if decel <= 0 or abs(v0) * self.gear_ratio < SPEED_ZERO_RPM:
+            hp.stop()
+            self._ramp_done()
+            return
+        self._ramp_task = asyncio.get_running_loop().create_task(
+            self._ramp(v0, decel), name=f"{self.name}-quick-stop-ramp")
+
+    async def _ramp(self, v0: float, decel: float) -> None:
+        loop = asyncio.get_running_loop()
+        hp = self.world.handpiece
+        t0 = loop.time()
+        sign = 1.0 if v0 > 0 else -1.0
+        limit = hp.p.max_rpm
+        try:
+            while (v := abs(v0) - decel * (loop.time() - t0)) > 0:
+                hp.set_velocity(sign * min(v, limit))
+                await asyncio.sleep(RAMP_STEP_S)
+        except asyncio.CancelledError:
+            return                               # stopped by _stop_ramp_now / close
+        self._ramp_task = None
+        hp.stop()
+        self._ramp_done()
+
+    def _ramp_done(self) -> None:
+        """The motor is at rest: the fault reaction ends in FAULT; a quick stop stays or goes
+        to switch on disabled per 0x605A."""
+        if self.state is State.FAULT_REACTION_ACTIVE:
+            self._set_state(State.FAULT, "14")
+        elif self.state is State.QUICK_STOP_ACTIVE:
+            then = QUICK_STOP_OPTIONS.get(
+                self._od[co.obj("quick_stop_option_code").address], State.SWITCH_ON_DISABLED)
+            if then is not None:
+                self._set_state(then, "12 (quick stop done)")
+
+    def _stop_ramp_now(self) -> None:
+        task, self._ramp_task = self._ramp_task, None
+        if task is not None and not task.done():
+            task.cancel()
+            self.world.handpiece.stop()
+
+    async def _cancel_ramp(self) -> None:
+        task, self._ramp_task = self._ramp_task, None
+        if task is not None:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
 
     def _drive_update(self, prev_cw: int) -> None:
         od = self._od
@@ -675,13 +894,18 @@ class Epos4Node:
                 self.ignored_modes += 1
                 mode_changed = False
         new, tr = co.apply_controlword(self.state, cw, prev_cw)
-        if self.world.estop and new in (State.SWITCHED_ON, State.OPERATION_ENABLED) \
+        if self.sto_active and new in (State.SWITCHED_ON, State.OPERATION_ENABLED) \
                 and self.state not in (State.SWITCHED_ON, State.OPERATION_ENABLED):
             new, tr = self.state, None        # STO active: the power stage stays off
-        if tr == "15":
+        reset_edge = bool(cw & CW_FAULT_RESET and not prev_cw & CW_FAULT_RESET)
+        if tr == "15" or (reset_edge and self._error_code and self.state not in (
+                State.FAULT, State.FAULT_REACTION_ACTIVE)):
+            # transition 15; or an error signalled without FAULT (0x6007 = 0, 2, 3)
             self._error_code = self._error_register = 0
             self._send_emcy(0, 0)
-        if new is not self.state:
+        if tr is not None and tr.startswith("11"):
+            self._quick_stop(tr)              # the quick-stop ramp, then 0x605A
+        elif new is not self.state:
             self._set_state(new, tr)          # entering operation enabled enters the mode
         elif mode_changed and self.state is State.OPERATION_ENABLED:
             self._enter_mode()
@@ -734,24 +958,31 @@ class Epos4Node:
 
     # ------------------------------------------------------------------ faults
     def _poll_world(self) -> None:
-        """Faults the World causes: a fractured file, the STO dropping while powered."""
-        w = self.world
-        if w.fractured is not None and not self._fracture_reported:
-            self._fracture_reported = True
-            log.warning("epos4 sim: file fractured", cause=w.fractured.cause)
-            self._fault(FRACTURE_EMCY_CODE)
-        if w.estop and self.state in (State.SWITCHED_ON, State.OPERATION_ENABLED,
-                                      State.QUICK_STOP_ACTIVE):
-            self._fault(STO_EMCY_CODE)
+        """Faults the World causes: the STO opening while the power stage is on."""
+        if self.sto_active and self.state in (State.SWITCHED_ON, State.OPERATION_ENABLED,
+                                              State.QUICK_STOP_ACTIVE,
+                                              State.FAULT_REACTION_ACTIVE):
+            self._fault(STO_EMCY_CODE, brake=False)
 
     def _fault(self, code: int, register: int | None = None,
-               manufacturer: bytes = bytes(5)) -> None:
+               manufacturer: bytes = bytes(5), *, brake: bool = True) -> None:
+        """A device error: error code and register, EMCY, FAULT. With ``brake`` (and the
+        motor powered) the fault reaction first stops it on the quick-stop ramp; without
+        (the STO took the power stage) it goes to FAULT at once."""
         self._error_code = code
         self._error_register = co.error_register_for(code) if register is None else register
-        if self.state is not State.FAULT:
-            self._set_state(State.FAULT_REACTION_ACTIVE, "13")
-            self.world.handpiece.stop()
-            self._set_state(State.FAULT, "14")
+        st = self.state
+        if st is not State.FAULT:
+            powered = st in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE,
+                             State.FAULT_REACTION_ACTIVE)
+            if brake and powered and self._decel_file_rpm_s() > 0:
+                self._set_state(State.FAULT_REACTION_ACTIVE, "13", braking=True)
+                self._start_ramp()
+            else:
+                self._set_state(State.FAULT_REACTION_ACTIVE, "13")
+                self._stop_ramp_now()
+                self.world.handpiece.stop()
+                self._set_state(State.FAULT, "14")
         self._send_emcy(code, self._error_register, manufacturer)
 
     def _send_emcy(self, code: int, register: int, manufacturer: bytes = bytes(5)) -> None:

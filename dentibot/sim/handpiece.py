@@ -1,8 +1,9 @@
 """Handpiece: Maxon motor through a 67:1 gear turning the file (thesis 5.1).
 
 Speed loop: first order towards the commanded file speed (or a position profile for
-``move_relative``), as long as the motor can supply the load torque; above its peak torque the
-motor stalls (decelerates to rest with the same time constant).
+``move_relative``), as long as the motor can supply the load torque; above the torque of its
+current limit (the motor's own, or the lower one the drive is set to) the motor stalls
+(decelerates to rest with the same time constant) and gives the file no more than that torque.
 
 Current model::
 
@@ -78,6 +79,8 @@ class HandpieceModel:
         self.torque_mnm = 0.0          # signed torque the motor applies to the file
         self.stalled = False
         self.fault: str | None = None
+        #: the drive's output current limit (A): the motor cannot give the file more torque
+        self.current_limit_a = params.current_limit_a
         self._noise = rng.standard_normal(4096) * params.current_noise_a
         self._k = 0
 
@@ -99,6 +102,13 @@ class HandpieceModel:
     def stop(self) -> None:
         self.mode = "vel"
         self.cmd_rpm = 0.0
+
+    def set_current_limit(self, amps: float) -> None:
+        """The drive's output current limit (A), at most the motor's own."""
+        if not 0.0 < amps <= self.p.current_limit_a:
+            raise ConfigError("handpiece.current_limit_a", amps,
+                              f"0 < A <= {self.p.current_limit_a} (the motor's limit)")
+        self.current_limit_a = float(amps)
 
     @property
     def move_done(self) -> bool:
@@ -122,7 +132,8 @@ class HandpieceModel:
         sgn = (direction > 0.0) - (direction < 0.0)
         resist_mnm = resist_fwd_mnm if sgn > 0 else resist_rev_mnm
         load = resist_mnm * sgn
-        t_max = p.current_limit_a * p.torque_per_amp_mnm
+        # the current limit covers the no-load current too (see the current model above)
+        t_max = max(0.0, self.current_limit_a - p.friction_current_a) * p.torque_per_amp_mnm
         a = -math.expm1(-ts / p.tau_s)   # exact discretisation of the first-order loop
         if resist_mnm > t_max and sgn != 0:
             self.stalled = True

@@ -25,9 +25,19 @@ Behaviour (programming manual, firmware 9.x; devices.md):
   ResetError -> [2005] (or [2006] without error); motion stays paused until ResumeMotion.
 - PauseMotion / ClearMotion stop the arm (ClearMotion also empties the queue; both leave
   pm=1); ResumeMotion continues.
-- a dropped control connection (or an expired ConnectionWatchdog) pauses the arm: it stops,
-  the queue is cleared (assumption: nothing queued survives a lost link) and pm=1 until a
-  client sends ResumeMotion.
+- a dropped control connection pauses the arm: it stops, the queue is cleared (assumption:
+  nothing queued survives a lost link) and pm=1 until a client sends ResumeMotion.
+- connection watchdog (devices.md: ``ConnectionWatchdog(t)`` -> [2177][1], [2177][0] for
+  t = 0, which disables it). What the robot does is Mecademic's documentation (mecademicpy,
+  ``Robot.ConnectionWatchdog``): only another ``ConnectionWatchdog`` refreshes it (other
+  commands do not); when it expires the robot "will close the socket connections with this
+  application, raise the MX_SAFE_STOP_CONNECTION_DROPPED safety stop condition, and pause
+  motion (if robot is activated)". Here: the arm stops (as for a dropped link: queue cleared,
+  pm=1, a [2007] with pm=1 goes out first), then the control connection and the monitoring
+  connections from the same host are closed (the socket is *not* kept). The robot is not put
+  in error (es stays 0): the safety stop is a stop condition that ResumeMotion clears, as the
+  dropped link's. Firmware 9.x has no status message for it; the [3086] safety-stop status of
+  later firmware is not simulated.
 - monitoring: 2200 target joints, 2201 target pose, the optional 2202/2210/2211/2212/2213
   enabled with SetRealTimeMonitoring, then 2230 end of cycle. Decision on timestamps: they are
   the World's time ``round(world.t * 1e6)`` (us), so every record says which world state it
@@ -218,7 +228,7 @@ class Meca500Server:
         self._servers: list[asyncio.AbstractServer] = []
         self._task: asyncio.Task | None = None
         self._reschedule = True
-        self._ctrl_last_rx = 0.0
+        self._watchdog_fed_at = 0.0
         self._closed = False
         # counters
         self.commands = 0            # commands received (empty ones excluded)
@@ -228,6 +238,7 @@ class Meca500Server:
         self.refused_clients = 0     # second control clients refused with 3001
         self.dropped_clients = 0     # slow clients disconnected
         self.control_drops = 0       # control connections lost (link drop or close)
+        self.watchdog_expiries = 0   # connection watchdog safety stops
 
     # ------------------------------------------------------------------ lifecycle
     async def start(self) -> None:
@@ -330,7 +341,6 @@ class Meca500Server:
                 log.info("meca500_sim.control_refused", peer=conn.peer)
                 return
             self._ctrl = conn
-            self._ctrl_last_rx = time.monotonic()
             conn.send(encode_response(3000, self.greeting))
             log.info("meca500_sim.control_connected", peer=conn.peer)
         else:
@@ -359,7 +369,6 @@ class Meca500Server:
     def _on_data(self, conn: _Conn, data: bytes) -> None:
         if conn.kind != "control" or conn.refused:
             return                               # the monitoring port ignores input
-        self._ctrl_last_rx = time.monotonic()
         for item in conn.splitter.feed(data):
             if isinstance(item, ProtocolError):
                 self._bad(conn, 3003, "Command too long.", item)
@@ -535,6 +544,7 @@ class Meca500Server:
             self._arg_error(text)
             return
         self.watchdog_s = args[0]
+        self._watchdog_fed_at = time.monotonic()      # enabled or refreshed from now
         self._send_ctrl(2177, "1" if self.watchdog_s > 0 else "0")
 
     def _cmd_setrtc(self, conn, args, text) -> None:
@@ -620,10 +630,26 @@ class Meca500Server:
             log.warning("meca500_sim.error", code=arm.error_code)
         self._advance_queue()
         if self.watchdog_s > 0 and self._ctrl is not None and \
-                time.monotonic() - self._ctrl_last_rx > self.watchdog_s:
-            self.watchdog_s = 0.0
-            self._link_lost("connection watchdog expired")
+                time.monotonic() - self._watchdog_fed_at > self.watchdog_s:
+            self._watchdog_expired()
         self._publish_status()
+
+    def _watchdog_expired(self) -> None:
+        """The safety stop of an expired connection watchdog: pause (the dropped link's
+        reaction), then close the application's sockets (see the module docstring)."""
+        ctrl = self._ctrl
+        self.watchdog_expiries += 1
+        log.warning("meca500_sim.connection_watchdog_expired", timeout_s=self.watchdog_s,
+                    peer=ctrl.peer if ctrl is not None else None)
+        self.watchdog_s = 0.0
+        self._link_lost("connection watchdog expired")
+        if ctrl is None:
+            return
+        host = ctrl.peer[0] if isinstance(ctrl.peer, tuple) else ctrl.peer
+        for c in [ctrl, *self._monitors]:
+            peer_host = c.peer[0] if isinstance(c.peer, tuple) else c.peer
+            if (c is ctrl or peer_host == host) and c.transport is not None:
+                c.transport.close()             # flushes the [2007] with pm=1 first
 
     def _publish_status(self) -> None:
         st = self.status()

@@ -6,6 +6,11 @@
 - the EPOS4 as a CANopen node on a python-can ``virtual`` bus, exposed to other processes
   through a socketcand-compatible TCP endpoint on ``can_port``.
 
+The aux I/O's host-lost output is wired to the EPOS4's safe-torque-off input (in series with
+the emergency stop, as a clinic's safety relay chain would be): when the host stops feeding the
+aux watchdog, the drive loses its power stage and the file stops, whatever the drive's own
+heartbeat supervision says (``docs/device-liveness.md``).
+
 The World is stepped in real time (:class:`~dentibot.sim.timing.RealTimeStepper`). Everything
 binds to ``host`` (127.0.0.1 unless configured otherwise): nothing accepts remote commands by
 default. Port 0 means an ephemeral port (tests); the bound ports are in :attr:`ports`.
@@ -30,6 +35,8 @@ from dentibot.sim.timing import RealTimeStepper
 from dentibot.sim.world import World, WorldConfig
 
 log = structlog.get_logger("dentibot.sim.serve")
+#: The STO source name of the aux I/O's host-lost relay.
+STO_AUX_HOST_LOST = "aux host-lost"
 _bus_ids = itertools.count(1)
 
 
@@ -99,6 +106,9 @@ class VirtualDentiBot:
         self._bus = can.Bus(interface="virtual", channel=self._bus_channel,
                             receive_own_messages=False)
         self.epos = Epos4Node(w, self._bus, c.node_id)
+        epos = self.epos
+        self.modbus.host_lost_outputs.append(
+            lambda lost: epos.set_sto(STO_AUX_HOST_LOST, lost))
         self.socketcand = SocketcandServer(
             can.Bus(interface="virtual", channel=self._bus_channel), c.host, c.can_port,
             c.can_channel)

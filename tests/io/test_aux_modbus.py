@@ -25,7 +25,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from dentibot.errors import ConfigError, DeviceFault, ProtocolError
 from dentibot.io import AuxIO
-from dentibot.io.aux_modbus import AuxModbusDriver
+from dentibot.io.aux_modbus import AuxModbusDriver, WatchdogOverwritten
 from dentibot.io.aux_registers import (
     INDICATORS,
     REGISTER_MAP,
@@ -43,6 +43,7 @@ from dentibot.io.aux_registers import (
     int32_to_words,
     words_to_int32,
 )
+from dentibot.io.interfaces import ConnectTimeout
 from dentibot.sim import RealTimeStepper, World, WorldConfig
 from dentibot.sim.aux_modbus_server import AuxModbusServer
 
@@ -701,3 +702,85 @@ def test_watchdog_time_is_checked_before_anything_is_sent():
         with pytest.raises(ConfigError, match="watchdog_ms"):
             AuxModbusDriver(LOCAL, 502, watchdog_ms=bad)
     assert AuxModbusDriver(LOCAL, 502, watchdog_ms=0).watchdog_ms == 0
+
+
+async def test_a_second_client_switching_the_watchdog_off_is_a_latched_fault():
+    """Modbus has no authentication: another client writes HR 7 = 0 (watchdog off). The
+    driver reads HR 6-7 back every poll period and faults within about one of them; the
+    next feed restores the watchdog time."""
+    async with rig() as (_, server, _stepper):
+        drv = driver(server.port)
+        await drv.connect()
+        other = AsyncModbusTcpClient(LOCAL, port=server.port, reconnect_delay=0)
+        await other.connect()
+        try:
+            await _wait_for(lambda: drv.readbacks > 2)
+            assert drv.watchdog_fault is None
+            await drv.read()
+            assert not (await other.write_register(7, 0, device_id=1)).isError()
+            written = asyncio.get_running_loop().time()
+            assert server.watchdog_ms == 0                       # protection gone
+            exc = await fault_within(drv, timeout=2.0)
+            seen = asyncio.get_running_loop().time() - written
+            assert isinstance(exc, WatchdogOverwritten)
+            assert exc.found[1] == 0 and exc.expected[1] == 200
+            assert "watchdog OFF" in str(exc) and f"{LOCAL}:{server.port}" in str(exc)
+            # one poll period (10 ms) plus two requests; generous for a loaded machine
+            assert seen < drv.poll_period_s + 0.25
+            await _wait_for(lambda: server.watchdog_ms == 200)   # restored by the driver
+            # latched until the operator's reset, although the registers are right again
+            await asyncio.sleep(0.05)
+            with pytest.raises(WatchdogOverwritten):
+                await drv.read()
+            drv.clear_watchdog_fault()
+            await sample_where(drv, lambda s: True)
+            # another client feeding the watchdog (it would hide DentiBot's death) too
+            value = drv._fed_value
+            await other.write_register(6, (value + 1000) & 0xFFFF or 1, device_id=1)
+            exc = await fault_within(drv, timeout=2.0)
+            assert isinstance(exc, WatchdogOverwritten) and "someone else feeds" in str(exc)
+        finally:
+            other.close()
+            await drv.close()
+
+
+async def test_host_lost_is_a_relay_output():
+    async with rig() as (_, server, _stepper):
+        seen: list[bool] = []
+        server.host_lost_outputs.append(seen.append)
+        drv = driver(server.port, watchdog_ms=100)
+        await drv.connect()
+        await asyncio.sleep(0.2)
+        await drv.close()
+        await _wait_for(lambda: seen == [True], timeout=1.0)
+        drv = driver(server.port, watchdog_ms=100)
+        await drv.connect()                                      # back: a new counter
+        try:
+            await _wait_for(lambda: seen == [True, False], timeout=1.0)
+        finally:
+            await drv.close()
+
+
+async def test_connect_to_a_peer_that_never_answers_is_a_typed_timeout():
+    accepted: list[asyncio.StreamWriter] = []
+
+    async def silent(reader, writer):
+        accepted.append(writer)
+
+    server = await asyncio.start_server(silent, LOCAL, 0)
+    port = server.sockets[0].getsockname()[1]
+    try:
+        drv = driver(port, request_timeout_s=5.0, connect_timeout_s=0.3)
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        with pytest.raises(ConnectTimeout) as e:
+            await drv.connect()
+        assert 0.3 <= loop.time() - t0 <= 0.3 + 0.5
+        assert e.value.device == "aux-modbus" and f"{LOCAL}:{port}" in str(e.value)
+        assert "identification" in str(e.value)
+        await drv.close()
+    finally:
+        for w in accepted:
+            w.close()
+        server.close()
+        await server.wait_closed()

@@ -9,22 +9,34 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import struct
 import threading
 import time
 import uuid
 from types import SimpleNamespace
+from typing import ClassVar
 
 import can
 import canopen
+import numpy as np
 import pytest
 
 from dentibot.errors import ConfigError, DeviceFault
 from dentibot.io import Handpiece
 from dentibot.io import canopen_protocol as co
 from dentibot.io.canopen_protocol import RXPDO1, RXPDO2, TXPDO1, TXPDO2, NmtState, State
-from dentibot.io.epos4 import Epos4Driver, SdoAbort
-from dentibot.sim import FileFractured, HandpieceParams, RealTimeStepper, World, WorldConfig
+from dentibot.io.epos4 import (
+    DEFAULT_CONSUMER_MS,
+    DEFAULT_HOST_HEARTBEAT_PERIOD_S,
+    DEFAULT_HOST_NODE_ID,
+    DEFAULT_QUICK_STOP_FILE_RPM_S,
+    ConfigurationMismatch,
+    Epos4Driver,
+    SdoAbort,
+)
+from dentibot.io.interfaces import ConnectTimeout
+from dentibot.sim import HandpieceParams, RealTimeStepper, World, WorldConfig
 from dentibot.sim.epos4_node import Epos4Node
 
 pytestmark = pytest.mark.timeout(30)
@@ -58,6 +70,14 @@ async def rig(world: World | None = None, *, connect: bool = True, sync: bool = 
     node = Epos4Node(world, node_bus)
     drv_kw.setdefault("stale_after_s", 0.5)        # generous: the machine may be loaded
     drv_kw.setdefault("answer_timeout_s", 0.5)
+    # these tests script the driver rather than tick it like a control task: supervision
+    # by the control path (feed) has tests of its own
+    drv_kw.setdefault("feed_timeout_s", None)
+    # host and simulated drive share this process's event loop: a stall of the test process
+    # (a garbage collection on a loaded machine) is a stall of the host, which the product's
+    # 30 ms consumer rightly treats as a lost host. Tests about something else watch with a
+    # longer consumer time; the liveness tests pass the product's default.
+    drv_kw.setdefault("consumer_ms", 250)
     if factory:      # the driver opens (and owns) a bus made by the caller's factory
         drv = Epos4Driver(lambda: can.Bus(interface="virtual", channel=ch), **drv_kw)
     else:
@@ -379,16 +399,6 @@ async def test_emcy_faults_then_reset_and_enable_again():
         assert (await drv.read()).velocity_rpm == pytest.approx(30.0, abs=1 / GEAR)
 
 
-async def test_file_fracture_sends_emcy_and_faults():
-    async with rig() as r:
-        await r.drv.set_velocity(60.0)
-        await asyncio.sleep(0.05)
-        r.world.fractured = FileFractured("torsion", r.world.t, 70.0, 5.0)
-        exc = await read_fault(r.drv)
-        assert "0x8611" in str(exc) and "Following error" in str(exc)
-        assert r.drv.last.fault is not None
-
-
 async def test_quick_stop_then_enable():
     async with rig() as r:
         drv = r.drv
@@ -396,7 +406,9 @@ async def test_quick_stop_then_enable():
         await asyncio.sleep(0.1)
         await drv.quick_stop()
         assert await until(lambda: drv.state is State.QUICK_STOP_ACTIVE)
-        assert r.world.handpiece.cmd_rpm == 0.0
+        # the quick-stop ramp the driver wrote to 0x6085 takes 60 rpm to 0 in 10 ms
+        ramp_s = 60.0 / DEFAULT_QUICK_STOP_FILE_RPM_S
+        assert await until(lambda: r.world.handpiece.cmd_rpm == 0.0, timeout=ramp_s + 0.5)
         with pytest.raises(DeviceFault, match="not enabled"):
             await drv.set_velocity(10.0)
         await drv.enable()
@@ -429,14 +441,23 @@ async def test_wrong_length_frames_are_counted_not_fatal():
 
 async def test_silent_node_makes_read_stale_and_heartbeat_loss_is_seen():
     async with rig(stale_after_s=0.05, heartbeat_timeout_s=0.3) as r:
-        drv, node = r.drv, r.node
-        await asyncio.sleep(0.05)
+        drv, node, world = r.drv, r.node, r.world
+        await drv.set_velocity(60.0)
+        assert await until(lambda: abs(world.handpiece.omega_rpm - 60.0) < 1e-3)
         await drv.read()
-        node.muted = True                        # cable cut
+        node.muted = True                        # cable cut, both ways
         exc = await read_fault(drv)
         assert "stale" in str(exc) and "limit 50 ms" in str(exc)
-        node.muted = False
+        # the drive misses the host's heartbeat too and stops the file by itself
+        assert await until(lambda: node.state is State.FAULT, timeout=2.0)
+        assert node.heartbeat_errors == 1 and node.error_code == co.HEARTBEAT_ERROR_CODE
+        assert await until(lambda: abs(world.handpiece.omega_rpm) < 1.0)
+        node.muted = False                       # the EMCY was lost: the statusword says it
         assert await until(lambda: time.monotonic() - drv.last.t < 0.01)
+        exc = await read_fault(drv)
+        assert "fault" in str(exc)
+        await drv.fault_reset()
+        await drv.enable()
         await drv.read()
         # heartbeat producer switched off (over SDO): the driver notices within its timeout
         await drv.sdo_write("producer_heartbeat_time", 0)
@@ -537,3 +558,290 @@ async def test_independent_canopen_client_reads_and_writes_the_node():
         node_bus.shutdown()
     assert results == {"device_type": 0x0002_0192, "statusword": 0x0240, "abort": 0x0602_0000}
     assert node.value("producer_heartbeat_time") == 250
+
+
+# ---------------------------------------------------------------- liveness
+#: The World's handpiece speed loop: first order, tau 10 ms (HandpieceParams.tau_s).
+TAU_HP = 0.010
+#: Scheduling allowance for bounds measured on a loaded, shared machine: the node's event
+#: loop, the World's 2 ms steps, the 1 ms ramp updates.
+SCHED_S = 0.05
+
+
+def stop_bound_s(consumer_s: float, decel_file_rpm_s: float, rpm: float = 60.0) -> float:
+    """Longest the file turns after the host's last heartbeat: the consumer time, the
+    quick-stop ramp from ``rpm``, then the speed loop from at most ``rpm`` to below 1 rpm
+    (tau ln(rpm / 1)), plus scheduling."""
+    return consumer_s + rpm / decel_file_rpm_s + TAU_HP * math.log(rpm) + SCHED_S
+
+
+async def test_startup_configures_and_reads_back_the_liveness_objects():
+    async with rig(tap=True, consumer_ms=DEFAULT_CONSUMER_MS) as r:
+        drv, node = r.drv, r.node
+        word = (DEFAULT_HOST_NODE_ID << 16) | DEFAULT_CONSUMER_MS
+        assert node.value("consumer_heartbeat_time") == word        # CiA 301 layout
+        assert node.consumer == (127, DEFAULT_CONSUMER_MS / 1000)
+        assert node.value("abort_connection_option_code") == 1      # fault signal
+        assert node.value("quick_stop_deceleration") == round(DEFAULT_QUICK_STOP_FILE_RPM_S
+                                                              * GEAR)
+        assert drv.liveness == {"quick_stop_deceleration_rpm_s": 402_000,
+                                "abort_connection_option": 1,
+                                "consumer": (127, DEFAULT_CONSUMER_MS)}
+        # the host beats on 0x77F, state operational, every host_heartbeat_period_s
+        await asyncio.sleep(0.2)
+        beats = [m for m in frames(r.tap) if m.arbitration_id == 0x77F]
+        assert beats and all(bytes(m.data) == b"\x05" for m in beats)
+        assert len(beats) <= 0.2 / DEFAULT_HOST_HEARTBEAT_PERIOD_S + 2
+        assert node.heartbeats_consumed > 0 and node.heartbeat_errors == 0
+    # a clean close switches the consumer off before the host stops beating
+    assert node.consumer is None and node.heartbeat_errors == 0
+    assert node.state is State.READY_TO_SWITCH_ON
+
+
+class _ForgetfulNode(Epos4Node):
+    """A drive that acknowledges writes of ``forget`` but keeps its own value."""
+
+    forget: ClassVar[dict[str, int]] = {}
+
+    def _write_sdo(self, o, value):
+        if o.name in self.forget:
+            value = self.forget[o.name]
+        super()._write_sdo(o, value)
+
+
+@pytest.mark.parametrize("name, kept", [("consumer_heartbeat_time", 0),
+                                        ("abort_connection_option_code", 3),
+                                        ("quick_stop_deceleration", 10_000)])
+async def test_a_drive_that_does_not_hold_the_liveness_configuration_fails_connect(
+        name, kept, monkeypatch):
+    monkeypatch.setattr(_ForgetfulNode, "forget", {name: kept})
+    ch = channel()
+    world = World(WorldConfig(seed=1))
+    node_bus = can.Bus(interface="virtual", channel=ch)
+    node = _ForgetfulNode(world, node_bus)
+    drv = Epos4Driver(interface="virtual", channel=ch)
+    try:
+        await node.start()
+        with pytest.raises(ConfigurationMismatch) as e:
+            await drv.connect()
+        assert e.value.obj is co.obj(name) and e.value.read == kept
+        assert e.value.device == "epos4" and f"reads back {kept}" in str(e.value)
+        assert not drv.connected
+        assert node.state is State.SWITCH_ON_DISABLED          # never enabled
+    finally:
+        await drv.close()
+        await node.close()
+        node_bus.shutdown()
+
+
+async def test_lost_host_heartbeat_stops_the_file_on_the_quick_stop_ramp():
+    """The host goes silent (its cycle stops): after the consumer time the drive signals a
+    heartbeat error (EMCY 0x8130) and its fault reaction decelerates the file at 0x6085."""
+    decel = 600.0                       # file rpm/s: 60 rpm to rest in 100 ms, observable
+    async with rig(quick_stop_file_rpm_s=decel, consumer_ms=DEFAULT_CONSUMER_MS) as r:
+        drv, node, hp = r.drv, r.node, r.world.handpiece
+        await drv.set_velocity(60.0)
+        assert await until(lambda: abs(hp.omega_rpm - 60.0) < 1e-3)
+        ramp: list[tuple[float, float]] = []
+        await drv.stop_sync()           # the host is gone: no cycle, no heartbeat
+        last_beat = drv._host_hb_t
+        deadline = time.monotonic() + 2.0
+        while node.state is not State.FAULT and time.monotonic() < deadline:
+            if node.state is State.FAULT_REACTION_ACTIVE:
+                ramp.append((time.monotonic(), hp.cmd_rpm))
+            await asyncio.sleep(0.001)
+        assert node.state is State.FAULT
+        assert node.heartbeat_errors == 1 and node.error_code == co.HEARTBEAT_ERROR_CODE
+        consumer_s = DEFAULT_CONSUMER_MS / 1000
+        assert ramp[0][0] - last_beat >= consumer_s             # not before the consumer time
+        # the commanded speed falls linearly at the quick-stop deceleration
+        t = np.array([p[0] for p in ramp if 5.0 < p[1] < 55.0])
+        v = np.array([p[1] for p in ramp if 5.0 < p[1] < 55.0])
+        slope = np.polyfit(t - t[0], v, 1)[0]
+        assert slope == pytest.approx(-decel, rel=0.1)
+        assert await until(lambda: abs(hp.omega_rpm) < 1.0)
+        assert time.monotonic() - last_beat <= stop_bound_s(consumer_s, decel)
+        # the EMCY reached the driver, which names it
+        exc = await read_fault(drv)
+        assert "0x8130" in str(exc) and "heartbeat" in str(exc)
+        assert drv.last_emcy.register == 0x11                   # generic + communication
+        # the host is back: fault reset and enable, the consumer watches again
+        drv.start_sync()
+        await drv.fault_reset()
+        await drv.enable()
+        await drv.set_velocity(30.0)
+        await asyncio.sleep(0.1)
+        assert node.heartbeat_errors == 1 and node.state is State.OPERATION_ENABLED
+
+
+async def test_a_silent_control_path_withholds_the_heartbeat_while_the_file_turns():
+    feed_timeout = 0.05
+    async with rig(feed_timeout_s=feed_timeout, consumer_ms=DEFAULT_CONSUMER_MS) as r:
+        drv, node, hp = r.drv, r.node, r.world.handpiece
+        await drv.set_velocity(60.0)
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 0.3:                   # ticking: read every 2 ms
+            if drv.received:
+                await drv.read()
+            await asyncio.sleep(0.002)
+        assert node.heartbeat_errors == 0 and drv.withheld == 0
+        last_feed = drv._fed_t              # the control task stops; the loop runs on
+        assert await until(lambda: node.state is State.FAULT, timeout=2.0)
+        assert drv.withheld > 0 and node.error_code == co.HEARTBEAT_ERROR_CODE
+        assert await until(lambda: abs(hp.omega_rpm) < 1.0)
+        bound = feed_timeout + stop_bound_s(DEFAULT_CONSUMER_MS / 1000,
+                                            DEFAULT_QUICK_STOP_FILE_RPM_S)
+        assert time.monotonic() - last_feed <= bound
+        assert drv.syncs_sent > 0 and drv._sync_task is not None   # only the beat stopped
+
+
+async def test_a_file_at_rest_keeps_its_heartbeat_without_feeds():
+    async with rig(feed_timeout_s=0.05, consumer_ms=DEFAULT_CONSUMER_MS) as r:
+        await r.drv.set_velocity(60.0)
+        await r.drv.read() if r.drv.received else None
+        await r.drv.stop()                  # at rest: nothing to supervise
+        await asyncio.sleep(0.3)            # six feed timeouts without a read
+        assert r.node.heartbeat_errors == 0 and r.drv.withheld == 0
+        assert r.node.state is State.OPERATION_ENABLED
+
+
+@pytest.mark.parametrize("option, state", [
+    (co.AbortConnectionOption.QUICK_STOP, State.QUICK_STOP_ACTIVE),     # 0x605A = 6: stay
+    (co.AbortConnectionOption.DISABLE_VOLTAGE, State.SWITCH_ON_DISABLED),
+])
+async def test_abort_connection_options_other_than_fault(option, state):
+    async with rig(abort_connection_option=option, consumer_ms=DEFAULT_CONSUMER_MS) as r:
+        drv, node, hp = r.drv, r.node, r.world.handpiece
+        await drv.set_velocity(60.0)
+        assert await until(lambda: abs(hp.omega_rpm - 60.0) < 1e-3)
+        await drv.stop_sync()
+        assert await until(lambda: node.state is state, timeout=2.0)
+        assert node.error_code == co.HEARTBEAT_ERROR_CODE       # signalled, not FAULT
+        assert await until(lambda: abs(hp.omega_rpm) < 1.0)
+        drv.start_sync()
+
+
+async def test_sto_opened_by_another_source_cuts_the_power_stage_at_once():
+    async with rig() as r:
+        drv, node, hp = r.drv, r.node, r.world.handpiece
+        await drv.set_velocity(60.0)
+        assert await until(lambda: abs(hp.omega_rpm - 60.0) < 1e-3)
+        node.set_sto("host-lost relay", True)
+        assert node.state is State.FAULT and node.error_code == 0x8A88   # no ramp
+        assert hp.cmd_rpm == 0.0 and not hp.enabled
+        assert node.value("sto_inputs") == 0
+        node.set_sto("host-lost relay", False)
+        assert node.state is State.FAULT                        # latched until reset
+        exc = await read_fault(drv)
+        assert "0x8A88" in str(exc) and "STO" in str(exc)
+        await drv.fault_reset()
+        await drv.enable()
+        assert node.state is State.OPERATION_ENABLED
+
+
+async def test_socketcand_peer_that_never_greets_is_a_typed_timeout():
+    accepted: list[asyncio.StreamWriter] = []
+
+    async def silent(reader, writer):
+        accepted.append(writer)
+
+    server = await asyncio.start_server(silent, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    try:
+        drv = Epos4Driver(interface="socketcand", host="127.0.0.1", port=port,
+                          channel="vcan0", connect_timeout_s=0.3)
+        t0 = time.monotonic()
+        with pytest.raises(ConnectTimeout) as e:
+            await drv.connect()
+        assert 0.3 <= time.monotonic() - t0 <= 0.3 + 0.5
+        assert e.value.device == "epos4" and f"127.0.0.1:{port}" in str(e.value)
+        assert "greeting" in str(e.value)
+        await drv.close()
+        # nothing listening at all: refused at once, a DeviceFault naming the address
+        server.close()
+        await server.wait_closed()
+        drv = Epos4Driver(interface="socketcand", host="127.0.0.1", port=port,
+                          channel="vcan0", connect_timeout_s=0.3)
+        with pytest.raises(DeviceFault, match=f"127.0.0.1:{port}"):
+            await drv.connect()
+        await drv.close()
+    finally:
+        for w in accepted:
+            w.close()
+        server.close()
+
+
+def test_liveness_configuration_is_checked_before_anything_is_sent():
+    with pytest.raises(ConfigError, match="host_node_id"):
+        Epos4Driver(interface="virtual", channel="x", node_id=5, host_node_id=5)
+    with pytest.raises(ConfigError, match="consumer_heartbeat_ms"):
+        Epos4Driver(interface="virtual", channel="x", consumer_ms=70_000)
+    with pytest.raises(ConfigError, match="host_heartbeat_period_s"):
+        Epos4Driver(interface="virtual", channel="x", consumer_ms=20,
+                    host_heartbeat_period_s=0.01)
+    with pytest.raises(ConfigError, match="abort_connection_option"):
+        Epos4Driver(interface="virtual", channel="x", abort_connection_option=7)
+    with pytest.raises(ConfigError, match="quick_stop_file_rpm_s"):
+        Epos4Driver(interface="virtual", channel="x", quick_stop_file_rpm_s=0.0)
+
+
+async def test_node_consumer_watches_only_after_the_first_heartbeat():
+    """CiA 301: monitoring of a producer starts at its first heartbeat; the entry's layout is
+    node id << 16 | time ms; a node cannot watch itself (0x06040043)."""
+    ch = channel()
+    world = World(WorldConfig(seed=1))
+    node_bus = can.Bus(interface="virtual", channel=ch)
+    tap = can.Bus(interface="virtual", channel=ch)
+    node = Epos4Node(world, node_bus, node_id=3, heartbeat_period_s=0.0)
+    consumer_ms = 40
+    seen: list[can.Message] = []
+
+    async def first(cob: int) -> can.Message:
+        async def found() -> can.Message | None:
+            seen.extend(frames(tap))
+            return next((m for m in seen if m.arbitration_id == cob), None)
+        deadline = time.monotonic() + 1.0
+        while (m := await found()) is None:
+            assert time.monotonic() < deadline, f"no frame 0x{cob:03X}"
+            await asyncio.sleep(0.002)
+        seen.remove(m)
+        return m
+
+    async def sdo_write(index: int, sub: int, value: int) -> co.SdoFrame:
+        send(tap, 0x603, co.encode_sdo_download(index, sub, value.to_bytes(4, "little")))
+        return co.decode_sdo_response(bytes((await first(0x583)).data))
+
+    try:
+        await node.start()
+        word = co.encode_consumer_heartbeat(0x7F, consumer_ms)
+        assert word == 0x007F_0028
+        assert (await sdo_write(0x1016, 1, word)).kind == "download_ack"
+        assert node.consumer == (0x7F, consumer_ms / 1000)
+        await asyncio.sleep(3 * consumer_ms / 1000)          # no heartbeat yet: not watching
+        assert node.heartbeat_errors == 0
+        send(tap, 0x77F, b"\x05")                          # the first beat arms it
+        t0 = time.monotonic()
+        emcy = co.decode_emcy(bytes((await first(0x083)).data))
+        assert (emcy.code, emcy.register) == (co.HEARTBEAT_ERROR_CODE, 0x11)
+        assert time.monotonic() - t0 >= consumer_ms / 1000 and node.heartbeat_errors == 1
+        # watching itself is refused
+        abort = await sdo_write(0x1016, 1, co.encode_consumer_heartbeat(3, consumer_ms))
+        assert abort.kind == "abort" and abort.abort_code == 0x0604_0043
+    finally:
+        await node.close()
+        node_bus.shutdown()
+        tap.shutdown()
+
+
+async def test_current_limit_is_written_read_back_and_limits_the_motor():
+    async with rig() as r:
+        drv, hp = r.drv, r.world.handpiece
+        assert drv.nominal_current_a == pytest.approx(0.5)       # 0x3001:01 of the motor
+        await drv.set_current_limit(0.2)
+        assert r.node.value("motor_output_current_limit") == 200  # mA
+        assert hp.current_limit_a == pytest.approx(0.2)
+        with pytest.raises(ConfigError, match="current_limit_a"):
+            await drv.set_current_limit(0.6)                      # above the motor's
+        with pytest.raises(SdoAbort) as e:
+            await drv.sdo_write("motor_output_current_limit", 600)
+        assert e.value.code == 0x0609_0031                        # value too high

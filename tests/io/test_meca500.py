@@ -28,6 +28,7 @@ import pytest
 
 from dentibot.errors import ConfigError, DeviceFault
 from dentibot.io import Arm
+from dentibot.io.interfaces import ConnectTimeout
 from dentibot.io.meca500 import Meca500Driver
 from dentibot.io.meca500_protocol import RobotStatus, decode_response
 from dentibot.sim import RealTimeStepper, World, WorldConfig
@@ -54,6 +55,9 @@ async def rig(step: bool = True, **server_kw):
     drivers: list[Meca500Driver] = []
 
     def make(**kw) -> Meca500Driver:
+        # these tests script the driver with pauses longer than a control period: the
+        # connection watchdog has tests of its own
+        kw.setdefault("connection_watchdog_s", 0)
         d = Meca500Driver("127.0.0.1", server.port, server.monitor_port, **kw)
         drivers.append(d)
         return d
@@ -524,14 +528,137 @@ async def test_simulator_answers_bad_commands_like_the_robot():
             await writer.wait_closed()
 
 
-async def test_connection_watchdog_pauses_a_silent_client():
+# ------------------------------------------------------------------ connection watchdog
+#: The simulator looks at the watchdog every poll (1 ms); a loaded shared machine may delay
+#: its event loop by a few tens of ms: the margin of every bound below.
+WATCHDOG_MARGIN_S = 0.1
+
+
+async def test_the_simulator_safety_stops_on_an_expired_connection_watchdog():
+    """Mecademic's documented behaviour: only ConnectionWatchdog refreshes it; on expiry the
+    robot pauses motion and closes the application's sockets."""
     async with rig() as r:
-        d = await ready(r.make())
-        reply = await d._request("ConnectionWatchdog", 0.05)
-        assert reply.code == 2177 and reply.payload == "1"
-        await until(lambda: r.server.paused, timeout=2.0, what="watchdog pause")
-        await until(lambda: d.paused, timeout=2.0, what="status pm=1 reaches the driver")
-        assert d.connected                                  # paused, not disconnected
+        reader, writer = await asyncio.open_connection("127.0.0.1", r.server.port)
+        mon_reader, mon_writer = await asyncio.open_connection("127.0.0.1",
+                                                               r.server.monitor_port)
+
+        async def ask(cmd: bytes, skip=(2007, 3012)):
+            writer.write(cmd + b"\0")
+            return decode_response(await read_frame(reader, skip))
+
+        try:
+            await read_frame(reader)
+            assert (await ask(b"ActivateRobot")).code == 2000
+            assert (await ask(b"Home")).code == 2002
+            assert (await ask(b"ConnectionWatchdog(0)")).payload == "0"      # 0: disabled
+            timeout = 0.1
+            reply = await ask(b"ConnectionWatchdog(0.1)")
+            assert (reply.code, reply.payload) == (2177, "1")
+            armed = time.monotonic()
+            # 1 s velocity timeout: only the watchdog can stop this motion in time
+            writer.write(b"SetVelTimeout(1)\0MoveJointsVel(20,0,0,0,0,0)\0")
+            q0 = r.world.arm.q[0]
+            # other traffic does not refresh the watchdog
+            closed_at = None
+            while time.monotonic() - armed < timeout + 1.0:
+                try:
+                    writer.write(b"GetStatusRobot\0")
+                    frame = await asyncio.wait_for(reader.readuntil(b"\0"), 0.02)
+                except TimeoutError:
+                    continue
+                except (asyncio.IncompleteReadError, ConnectionError):
+                    closed_at = time.monotonic()
+                    break
+                assert decode_response(frame[:-1]).code in (2007, 3012)
+            assert closed_at is not None, "the robot kept the connection"
+            assert timeout <= closed_at - armed <= timeout + WATCHDOG_MARGIN_S
+            assert r.server.watchdog_expiries == 1 and r.server.paused
+            assert not r.server.in_error                 # a stop condition, not an error
+            # the monitoring connection of the same application is closed too
+            while await asyncio.wait_for(mon_reader.read(65536), 2.0):
+                pass                                     # cycles, then end of stream
+            # the arm is at rest: 20 deg/s for at most the watchdog time (+ margin), then the
+            # servo's first-order lag (tau 8 ms) brings it down
+            await world_wait(r.world, 0.1)
+            assert r.world.arm.qdot == pytest.approx([0.0] * 6, abs=1e-6)
+            moved = r.world.arm.q[0] - q0
+            assert 0.0 < moved <= 20.0 * (timeout + WATCHDOG_MARGIN_S + TAU)
+            # the next application finds the robot paused, not in error: ResumeMotion needed
+            writer.close()
+            reader, writer = await asyncio.open_connection("127.0.0.1", r.server.port)
+            await read_frame(reader)
+            st = RobotStatus.from_payload((await ask(b"GetStatusRobot", skip=())).payload)
+            assert st.paused and not st.error and st.activated and st.homed
+            assert (await ask(b"ResumeMotion")).code == 2043
+        finally:
+            for w in (writer, mon_writer):
+                w.close()
+                with contextlib.suppress(ConnectionError):
+                    await w.wait_closed()
+
+
+async def test_the_driver_arms_the_watchdog_and_its_reads_keep_it_alive():
+    async with rig() as r:
+        d = await ready(r.make(connection_watchdog_s=0.05))
+        assert r.server.watchdog_s == 0.05                 # armed at connection
+        f0 = d.watchdog_feeds
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 0.5:                 # ten watchdog times of ticks
+            await d.read()
+            await d.move_joints_vel(np.zeros(6))
+            await asyncio.sleep(0.002)
+        assert d.connected and r.server.watchdog_expiries == 0
+        # refreshed at most every quarter of the time: 40 in 0.5 s, fewer when ticks are late
+        assert 10 <= d.watchdog_feeds - f0 <= 0.5 / (0.05 / 4) + 1
+
+
+async def test_a_silent_driver_loses_the_arm_within_the_watchdog_time():
+    """The control task stops calling the driver (frozen, stuck): the robot stops a long
+    MoveJoints that the velocity timeout does not cover, and drops the connection."""
+    async with rig() as r:
+        timeout = 0.1
+        d = await ready(r.make(connection_watchdog_s=timeout))
+        q0 = r.world.arm.q[0]
+        await d.move_joints((q0 - 120.0, *r.world.arm.q[1:]))   # 120 deg at 150 deg/s: 0.8 s
+        last_feed = d._watchdog_fed_t
+        await until(lambda: not d.connected, timeout=2.0, what="link closed by the robot")
+        lost = time.monotonic()
+        assert timeout <= lost - last_feed <= timeout + WATCHDOG_MARGIN_S
+        with pytest.raises(DeviceFault, match="link down"):
+            await d.read()
+        await world_wait(r.world, 0.1)
+        assert r.world.arm.qdot == pytest.approx([0.0] * 6, abs=1e-6)
+        # stopped far short of the target: at most 150 deg/s for the watchdog time + margin
+        assert q0 - r.world.arm.q[0] <= 150.0 * (timeout + WATCHDOG_MARGIN_S + TAU)
+        assert r.server.paused and r.server.watchdog_expiries == 1
+        # a new connection finds the robot paused: ResumeMotion is needed (devices.md)
+        await d.reconnect()
+        assert d.paused
+
+
+async def test_connect_to_a_silent_peer_is_a_typed_timeout_naming_the_address():
+    accepted: list[asyncio.StreamWriter] = []
+
+    async def silent(reader, writer):
+        accepted.append(writer)
+
+    server = await asyncio.start_server(silent, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    try:
+        d = Meca500Driver("127.0.0.1", port, port + 1, response_timeout_s=0.3)
+        t0 = time.monotonic()
+        with pytest.raises(ConnectTimeout) as e:
+            await d.connect()
+        took = time.monotonic() - t0
+        assert 0.3 <= took <= 0.3 + 0.5
+        assert e.value.device == "meca500" and f"127.0.0.1:{port}" in str(e.value)
+        assert "greeting" in str(e.value) and e.value.timeout_s == 0.3
+        await d.close()
+    finally:
+        for w in accepted:
+            w.close()
+        server.close()
+        await server.wait_closed()
 
 
 async def test_driver_survives_garbage_from_the_robot():

@@ -19,6 +19,7 @@ import pytest
 
 from dentibot.errors import ConfigError, DeviceFault, ProtocolError
 from dentibot.io import ForceSensor
+from dentibot.io.interfaces import ConnectTimeout
 from dentibot.io.netft import NetFTDriver
 from dentibot.io.netft_protocol import Command, RdtRecord, encode_record, encode_records
 from dentibot.sim import FTSensorParams, RealTimeStepper, SimForceSensor, World, WorldConfig
@@ -165,6 +166,40 @@ async def test_no_web_server_is_a_device_fault():
         port = s.getsockname()[1]
     with pytest.raises(DeviceFault, match="netftapi2.xml"):
         await NetFTDriver("127.0.0.1", 9, port).connect()
+
+
+async def test_a_web_server_that_never_answers_is_a_typed_timeout():
+    """Accepts the connection, reads the request, says nothing (or dribbles a byte now and
+    then): the whole exchange is bounded by http_timeout_s."""
+    accepted: list[asyncio.StreamWriter] = []
+    handlers: list[asyncio.Task] = []
+
+    async def silent(reader, writer):
+        accepted.append(writer)
+        handlers.append(asyncio.current_task())
+        await reader.read(1024)
+        for _ in range(100):
+            writer.write(b"H")                   # never a complete answer
+            await asyncio.sleep(0.05)
+
+    server = await asyncio.start_server(silent, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    try:
+        drv = NetFTDriver("127.0.0.1", 9, port, http_timeout_s=0.3)
+        t0 = time.monotonic()
+        with pytest.raises(ConnectTimeout) as e:
+            await drv.connect()
+        assert 0.3 <= time.monotonic() - t0 <= 0.3 + 0.5
+        assert e.value.device == "netft" and f"127.0.0.1:{port}" in str(e.value)
+        assert "netftapi2.xml" in str(e.value) and not drv.connected
+    finally:
+        for task in handlers:
+            task.cancel()
+        await asyncio.gather(*handlers, return_exceptions=True)
+        for w in accepted:
+            w.close()
+        server.close()
+        await server.wait_closed()
 
 
 # --------------------------------------------------------------------------- streaming

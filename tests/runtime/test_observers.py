@@ -107,12 +107,23 @@ def test_the_free_running_level_is_learnt_outside_the_canal():
 
 def test_the_measured_tip_speed_bound():
     obs = TipSpeedObserver(TS, LIM)
-    fast = [obs.check((0.070 * k * 1000 * TS, 0.0, 0.0)) for k in range(10)]   # 70 mm/s
+    fast = [obs.check((0.070 * k * 1000 * TS, 0.0, 0.0)) for k in range(20)]   # 70 mm/s
     # the first sample has no speed; then 4 ticks above the bound (8 ms)
     assert _first_tick_with(fast) == round(LIM.persist_s / TS)
     obs = TipSpeedObserver(TS, LIM)
     slow = [obs.check((0.040 * k * 1000 * TS, 0.0, 0.0)) for k in range(100)]  # 40 mm/s
     assert _first_tick_with(slow) is None
+
+
+def test_a_late_joint_sample_does_not_read_as_a_doubled_speed():
+    """40 mm/s with every 4th sample a period late (the same position twice, then a double
+    step), as a loaded machine delivers them in real time: not above 60 mm/s."""
+    obs, x, out = TipSpeedObserver(TS, LIM), 0.0, []
+    for k in range(200):
+        if k % 4 != 1:
+            x += 0.040 * 1000 * TS * (2 if k % 4 == 2 else 1)
+        out.append(obs.check((x, 0.0, 0.0)))
+    assert _first_tick_with(out) is None
 
 
 class _Device:

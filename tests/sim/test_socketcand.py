@@ -21,9 +21,9 @@ from can.interfaces.socketcand.socketcand import (
 from hypothesis import given
 from hypothesis import strategies as st
 
-from dentibot.errors import ProtocolError
+from dentibot.errors import DeviceFault, ProtocolError
 from dentibot.io.canopen_protocol import State
-from dentibot.io.epos4 import Epos4Driver
+from dentibot.io.epos4 import Epos4Driver, SocketcandBus
 from dentibot.sim import RealTimeStepper, World, WorldConfig
 from dentibot.sim.epos4_node import Epos4Node
 from dentibot.sim.socketcand import (
@@ -359,8 +359,11 @@ async def test_epos4_driver_through_socketcand():
     try:
         await node.start()
         await server.start()
+        # host and drive share this loop: a longer consumer time than the product's 30 ms,
+        # so that a stall of the test process is not a lost host (tests/io/test_epos4.py)
         drv = Epos4Driver(interface="socketcand", host="127.0.0.1", port=server.port,
-                          channel="vcan0", stale_after_s=0.5, answer_timeout_s=0.5)
+                          channel="vcan0", stale_after_s=0.5, answer_timeout_s=0.5,
+                          consumer_ms=250)
         await drv.connect()
         assert drv.state is State.OPERATION_ENABLED and node.state is State.OPERATION_ENABLED
         await drv.set_velocity(60.0)
@@ -388,14 +391,16 @@ CHILD = """
 import asyncio, json, logging, sys
 import structlog
 structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.ERROR))
-from dentibot.io.epos4 import Epos4Driver
+from dentibot.io.epos4 import Epos4Driver, SocketcandBus
 
 async def main(port):
     drv = Epos4Driver(interface="socketcand", port=port, channel="vcan0",
                       stale_after_s=0.5, answer_timeout_s=0.5)
     async with drv:
         await drv.set_velocity(60.0)
-        await asyncio.sleep(0.5)
+        for _ in range(250):                     # a control loop reads (feeds) every tick
+            s = await drv.read() if drv.received else None
+            await asyncio.sleep(0.002)
         s = await drv.read()
         out = {"rpm": s.velocity_rpm, "enabled": s.enabled, "lost": drv.lost,
                "received": drv.received, "km": drv.km_mnm_per_a}
@@ -439,3 +444,114 @@ async def test_driver_in_another_process_reaches_the_node():
         await stepper
         node_bus.shutdown()
         server_bus.shutdown()
+
+
+# ---------------------------------------------------------------- the driver's own client
+
+
+@given(st.booleans(), st.integers(0, 0x1FFF_FFFF), st.binary(max_size=8))
+def test_the_drivers_send_line_parses_in_the_server(ext, can_id, data):
+    if not ext:
+        can_id &= 0x7FF
+    msg = can.Message(arbitration_id=can_id, is_extended_id=ext, data=data)
+    verb, args = parse_command(SocketcandBus.send_line(msg))
+    assert verb == "send" and parse_send(args) == (can_id, ext, data)
+
+
+@given(st.booleans(), st.integers(0, 0x1FFF_FFFF), st.binary(max_size=8),
+       st.floats(0, 2e9, allow_nan=False))
+def test_the_servers_frame_line_parses_in_the_drivers_client(ext, can_id, data, ts):
+    if not ext:
+        can_id &= 0x7FF
+    msg = SocketcandBus.parse_frame(encode_frame(can_id, ext, data, ts))
+    assert (msg.arbitration_id, msg.is_extended_id, bytes(msg.data)) == (can_id, ext, data)
+
+
+@contextlib.asynccontextmanager
+async def scripted_server(script):
+    """A TCP server whose handler is ``script(reader, writer)``."""
+    tasks: list[asyncio.Task] = []
+    writers: list[asyncio.StreamWriter] = []
+
+    async def handle(reader, writer):
+        tasks.append(asyncio.current_task())
+        writers.append(writer)
+        with contextlib.suppress(ConnectionError):
+            await script(reader, writer)
+
+    server = await asyncio.start_server(handle, "127.0.0.1", 0)
+    try:
+        yield server.sockets[0].getsockname()[1]
+    finally:
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        for w in writers:
+            w.close()
+        server.close()
+        await server.wait_closed()
+
+
+async def test_the_drivers_client_survives_split_and_glued_handshake_answers():
+    """The greeting split over two TCP writes, a frame glued to the last "< ok >": python-can's
+    own client compares each answer to one recv(); the driver's buffers the stream."""
+    async def script(reader, writer):
+        writer.write(b"< h")
+        await writer.drain()
+        await asyncio.sleep(0.02)
+        writer.write(b"i >")
+        await reader.readuntil(b">")                                  # < open vcan0 >
+        writer.write(b"< ok >")
+        await reader.readuntil(b">")                                  # < rawmode >
+        writer.write(b"< ok >< frame 701 1700000000.000001 05 >")
+        await writer.drain()
+        assert await reader.readuntil(b">") == b"< send 123 0 >"
+        writer.write(b"< frame 181 1700000000.000002 0102 >")
+        await writer.drain()
+        await asyncio.sleep(1.0)
+
+    async with scripted_server(script) as port:
+        bus = await _in_thread(lambda: SocketcandBus("vcan0", "127.0.0.1", port,
+                                                     timeout_s=2.0))
+        try:
+            msg = bus.recv(1.0)
+            assert (msg.arbitration_id, bytes(msg.data)) == (0x701, b"\x05")
+            bus.send(can.Message(arbitration_id=0x123, is_extended_id=False, data=b""))
+            msg = await _in_thread(lambda: bus.recv(2.0))
+            assert (msg.arbitration_id, bytes(msg.data)) == (0x181, b"\x01\x02")
+        finally:
+            bus.shutdown()
+
+
+async def test_the_drivers_client_reports_refusals_and_a_closed_connection():
+    async def refuse(reader, writer):
+        writer.write(b"< hi >")
+        await reader.readuntil(b">")
+        writer.write(b"< error could not open bus >")
+        await writer.drain()
+        await asyncio.sleep(1.0)
+
+    async with scripted_server(refuse) as port:
+        drv = Epos4Driver(interface="socketcand", host="127.0.0.1", port=port, channel="can9")
+        with pytest.raises(DeviceFault, match=r"could not open bus") as e:
+            await drv.connect()
+        assert f"127.0.0.1:{port}" in str(e.value)
+        await drv.close()
+
+    async def hang_up(reader, writer):
+        writer.write(b"< hi >")
+        await reader.readuntil(b">")
+        writer.write(b"< ok >")
+        await reader.readuntil(b">")
+        writer.write(b"< ok >")
+        await writer.drain()
+        await asyncio.sleep(0.05)
+        writer.close()
+
+    async with scripted_server(hang_up) as port:
+        bus = await _in_thread(lambda: SocketcandBus("vcan0", "127.0.0.1", port))
+        try:
+            with pytest.raises(can.CanOperationError, match="closed the connection"):
+                await _in_thread(lambda: bus.recv(2.0))
+        finally:
+            bus.shutdown()
