@@ -27,10 +27,13 @@ from dentibot.protocol.loader import ProtocolFileError
 from dentibot.protocol.schema import LIMIT_SHARE_OF_STRENGTH, Protocol
 from dentibot.runtime.config import RuntimeConfig, Thresholds, ToolGeometry, TreatmentPlan
 from dentibot.runtime.control_task import Runtime
+from dentibot.runtime.tool import tool_matrix
 from dentibot.sim.canal import CanalParams, material_params
 from dentibot.sim.ftsensor import FTSensorParams
 from dentibot.sim.nitifile import NiTiFile
 from dentibot.sim.world import WorldConfig
+from dentibot.telemetry.foxglove import FoxgloveView
+from dentibot.telemetry.live import LiveView
 from dentibot.telemetry.recorder import McapRecorder
 from dentibot.telemetry.schema import TelemetryError
 from dentibot.telemetry.summary import RunSummary, SummaryAccumulator
@@ -73,7 +76,8 @@ def runtime_config(p: Protocol) -> RuntimeConfig:
         tool=ToolGeometry(tip_6_mm=p.tool.tip_mm,
                           sensor_origin_6_mm=(0.0, 0.0, p.tool.sensor_offset_mm),
                           grip_h_mm=p.tool.grip_mm),
-        thresholds=Thresholds(patient_moved_n=lim.patient_moved_n,
+        thresholds=Thresholds(file_strength_mnm=p.file.torsional_strength_mnm,
+                              patient_moved_n=lim.patient_moved_n,
                               patient_release_n=min(1.0, 0.66 * lim.patient_moved_n),
                               torque_limit_mnm=lim.torque_limit_mnm,
                               axial_force_limit_n=lim.axial_force_limit_n,
@@ -137,7 +141,8 @@ class ProtocolRunner:
     recording, not the live summary (the summary then carries the status and its reason).
     ``limit_share``: the largest share of the file's strength the protocol's hard torque limit
     may be (90 %; a study of strategies without the runtime's net on the built-in simulator may
-    go up to 1).
+    go up to 1). ``live``: a port on 127.0.0.1 where the run's channels are served live over the
+    Foxglove WebSocket protocol (0: a free port).
     """
 
     def __init__(self, protocol: Protocol, *, recording: str | Path | None = None,
@@ -146,7 +151,8 @@ class ProtocolRunner:
                  no_record: bool = False, devices: DevicesConfig | None = None,
                  tap: Callable[[dict], None] | None = None,
                  live_summary: bool = True,
-                 limit_share: float = LIMIT_SHARE_OF_STRENGTH) -> None:
+                 limit_share: float = LIMIT_SHARE_OF_STRENGTH,
+                 live: int | None = None) -> None:
         if not 0.0 < limit_share <= (1.0 if devices is None else LIMIT_SHARE_OF_STRENGTH):
             raise ConfigError("limit_share", limit_share,
                               f"0 < share <= {LIMIT_SHARE_OF_STRENGTH} of the file's strength "
@@ -179,6 +185,8 @@ class ProtocolRunner:
                               "a calibrate_load step (real devices need the load identified "
                               "before any force control)")
         self.recorder = None
+        self.live: LiveView | None = None
+        self._live_port = live
         self._overwrite = overwrite
         self._abort_reason = ""
 
@@ -197,6 +205,8 @@ class ProtocolRunner:
             self.acc.add(row)
         if self.recorder is not None:
             self.recorder.record(row)
+        if self.live is not None:
+            self.live.record(row)
         if self._tap is not None:
             self._tap(row)
         if self.progress is not None and row["tick"] % self.progress_every == 0:
@@ -214,6 +224,8 @@ class ProtocolRunner:
         self.acc.add_event(kind, detail, t=t, tick=tick)
         if self.recorder is not None:
             self.recorder.event(kind, detail, t=t, tick=tick)
+        if self.live is not None:
+            self.live.event(kind, detail, t=t, tick=tick)
 
     # ---------------------------------------------------------------- run
     def abort(self, reason: str = "stopped by the operator (Ctrl-C)") -> None:
@@ -252,18 +264,28 @@ class ProtocolRunner:
     async def _run(self) -> RunResult:
         p = self.p
         drills = [s.spec for s in p.steps if s.kind == "drill"]
+        proc, rt = self.procedure, self.procedure.runtime
+        th = rt.cfg.thresholds
+        meta = {
+            "protocol": p.name, "seed": p.seed, "rate_hz": p.control.rate_hz,
+            "devices": ({"arm": "sim", "ft": "sim", "handpiece": "sim", "aux": "sim"}
+                        if self.devices is None else
+                        {"arm": "meca500", "ft": "netft", "handpiece": "epos4",
+                         "aux": "modbus" if self.devices.aux else "none"}),
+            "file_torque_limit_mnm": p.file.torsional_strength_mnm,
+            # what is enforced: the runtime's limit, and the drive's current limit's torque
+            "torque_limit_mnm": th.torque_limit_mnm, "drive_limit_mnm": th.drive_limit_mnm,
+            **({"tau_d_mnm": drills[0].tau_d_mnm} if drills else {})}
+        tool = rt.cfg.tool
+        view = FoxgloveView(tool_6_h=tool_matrix(np.reshape(tool.R_6_H, (3, 3)), tool.tip_6_mm),
+                            file_length_mm=float(p.file.length_mm))
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.recorder = McapRecorder(self.path, {
-                "protocol": p.name, "seed": p.seed, "rate_hz": p.control.rate_hz,
-                "devices": ({"arm": "sim", "ft": "sim", "handpiece": "sim", "aux": "sim"}
-                            if self.devices is None else
-                            {"arm": "meca500", "ft": "netft", "handpiece": "epos4",
-                             "aux": "modbus" if self.devices.aux else "none"}),
-                "file_torque_limit_mnm": p.file.torsional_strength_mnm,
-                **({"tau_d_mnm": drills[0].tau_d_mnm} if drills else {})},
-                overwrite=self._overwrite, validate=False)   # rows are checked in tests
-        proc, rt = self.procedure, self.procedure.runtime
+            self.recorder = McapRecorder(self.path, meta, overwrite=self._overwrite,
+                                         validate=False, view=view)  # rows checked in tests
+            meta = self.recorder.metadata
+        if self._live_port is not None:
+            self.live = LiveView(meta, port=self._live_port, view=view)
         steps = StepExecutor(proc, aborted=lambda: bool(self._abort_reason))
         try:
             for i, step in enumerate(p.steps):
@@ -314,6 +336,8 @@ class ProtocolRunner:
         return "ok", ""
 
     def _close(self, status: str, reason: str) -> RunSummary:
+        if self.live is not None:
+            self.live.close(status, reason)
         if self.recorder is not None:
             try:
                 self.recorder.close(status, reason)

@@ -58,7 +58,7 @@ def _run(args: argparse.Namespace) -> int:
 
     runner = ProtocolRunner(protocol, recording=None if args.out is None else args.out,
                             progress=on_progress, no_record=args.no_record,
-                            devices=devices, overwrite=args.force)
+                            devices=devices, overwrite=args.force, live=args.live)
     try:
         with progress:
             result = asyncio.run(runner.run(handle_sigint=True))
@@ -88,6 +88,9 @@ def add_parser(sub) -> None:
                      help="print the result as one JSON object (progress goes to stderr)")
     run.add_argument("--out", help="recording file (MCAP); default from the protocol")
     run.add_argument("--no-record", action="store_true", help="do not write a recording")
+    run.add_argument("--live", type=int, nargs="?", const=8765, default=None, metavar="PORT",
+                     help="serve the run live to Foxglove on ws://127.0.0.1:PORT (default "
+                          "8765)")
     run.add_argument("--force", action="store_true",
                      help="replace the recording file if it exists (refused otherwise)")
     run.add_argument("--devices", help="device configuration YAML (wire simulators of "

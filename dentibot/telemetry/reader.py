@@ -10,6 +10,12 @@ closes a summary section. A recording cut short ends either in the middle of a r
 the provisional end its recorder keeps after the data (a footer without summary, see
 :mod:`dentibot.telemetry.recorder`); a file rewritten by ``dentibot recover`` has a summary but
 carries a ``dentibot.recovery`` metadata record (``recovered``): neither is complete.
+
+A field of a topic's table that a message leaves out reads back as None: that is how the
+recorder stores an unknown value (:mod:`dentibot.telemetry.schema`), so a row read back equals
+the row recorded, None values included. Recordings written with explicit ``null`` values read
+the same way. Everything is read by procedure time ``t``; the messages' log times (wall clock)
+are not needed. Other channels (the 3D topics ``/tf`` and ``/scene``) are skipped.
 """
 
 from __future__ import annotations
@@ -28,11 +34,14 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import MCAP0_MAGIC
 
 from dentibot.errors import ConfigError
-from dentibot.telemetry.schema import TICK_FIELDS, TOPICS, TelemetryError
+from dentibot.telemetry.schema import TICK_FIELDS, TOPICS, TelemetryError, none_fields
 
 __all__ = ["RECOVERY_METADATA_NAME", "MessageStream", "Recording", "read_recording"]
 
 TOPIC_NAMES = frozenset(TOPICS)
+
+#: topic -> every field of its table as None: a decoded message is laid over it
+_NONES: dict[str, dict[str, None]] = {topic: none_fields(topic) for topic in TOPICS}
 
 #: MCAP metadata record that ``dentibot recover`` adds to the files it rewrites
 RECOVERY_METADATA_NAME = "dentibot.recovery"
@@ -164,11 +173,12 @@ class MessageStream:
 
     def _decode(self, topic: str, msg: Message) -> Any:
         try:
-            return json.loads(msg.data)
+            obj = json.loads(msg.data)
         except (UnicodeDecodeError, json.JSONDecodeError) as exc:
             self.problems.append(f"{topic} message at log time {msg.log_time} ns: "
                                  f"bad JSON ({exc})")
             return _BAD
+        return _NONES[topic] | obj if isinstance(obj, dict) else obj
 
 
 _BAD = object()

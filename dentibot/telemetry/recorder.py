@@ -48,15 +48,37 @@ writer.
 If the writer thread dies (disk full, I/O error...), the next ``record()``/``event()`` raises
 :class:`TelemetryError` carrying the cause: a recording never stops silently.
 
+Time. Every message is logged at wall-clock time: ``log_time = publish_time = start_wall_ns +
+t`` (ns), ``start_wall_ns`` being the wall clock at t = 0 (taken when the recorder is built
+unless the metadata gives it) and ``t`` the row's procedure time, so viewers show the date and
+time of day of the procedure and the messages' order in time is the procedure's. The ``/run``
+message carries ``start_wall_ns`` and ``start_time`` (ISO 8601, UTC); ``t`` stays in every
+row, and everything DentiBot computes (reader, summaries, ``dentibot report``) works from
+``t``. In lock-step time, where procedure seconds pass faster than wall seconds, log times are
+the procedure's time laid out from its wall-clock start, not when the row was written.
+
+3D. With a :class:`~dentibot.telemetry.foxglove.FoxgloveView` (the default), each tick also
+gets a ``/tf`` message (``foxglove.FrameTransforms``: base, flange, file tip, tooth) and every
+``scene_hz`` of procedure time a ``/scene`` message (``foxglove.SceneUpdate``), derived from the
+row in the writer thread, after the row itself is written: ``record()`` costs the same, and a
+row the view cannot draw (or a caller's ``frames`` callable that fails) is counted in
+``view_errors`` and logged, never lost and never fatal. These messages are not ticks: they
+count neither against the budget nor in ``ticks_written``.
+
+Nulls. A row's None values (unknown quantities) are left out of the ``/tick`` message, not
+written as ``null`` (see :mod:`~dentibot.telemetry.schema`); the reader puts them back.
+
 Ownership: ``record(row)`` takes the row as it is and serialises it later, in the writer
 thread. The caller must not mutate the row (or the lists inside it) after handing it over;
 the runtime builds a fresh dict each tick. Numpy arrays and scalars are accepted; non-finite
-floats are written as ``null`` (JSON has no NaN) and counted.
+floats are counted (JSON has no NaN): a non-finite field is left out like a None, one inside
+an array is written as ``null``.
 """
 
 from __future__ import annotations
 
 import collections
+import datetime
 import json
 import math
 import os
@@ -75,6 +97,7 @@ from mcap.records import DataEnd, Footer
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from dentibot.errors import ConfigError
+from dentibot.telemetry.foxglove import FOXGLOVE_TOPICS, SCENE_TOPIC, TF_TOPIC, FoxgloveView
 from dentibot.telemetry.schema import (
     END_STATUSES,
     TOPICS,
@@ -137,6 +160,16 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
 
 
+def _without_none(obj: Any) -> Any:
+    """``obj`` without its None fields (a dict's only: how the file stores "unknown"). By
+    identity: ``None in values`` would compare numpy arrays with ``==``."""
+    if type(obj) is dict:
+        for v in obj.values():
+            if v is None:
+                return {k: v for k, v in obj.items() if v is not None}
+    return obj
+
+
 def _finite(obj: Any) -> Any:
     """``obj`` with every non-finite float replaced by None (numpy values converted)."""
     if isinstance(obj, float):
@@ -188,11 +221,29 @@ def _nonfinite(obj: Any) -> bool:
     return False
 
 
-def _log_time_ns(t: Any, fallback: int) -> int:
-    """MCAP log time (ns, unsigned) from ``t`` (s since the run start)."""
+_U64_MAX = (1 << 64) - 1
+
+
+def _log_time_ns(start_ns: int, t: Any, fallback: int) -> int:
+    """MCAP log time (ns since the epoch, unsigned): ``start_ns`` + ``t`` (s since the run
+    start); ``fallback`` when ``t`` is not a usable time."""
     if isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t) and t >= 0:
-        return round(t * 1e9)
+        ns = start_ns + round(t * 1e9)
+        if ns <= _U64_MAX:
+            return ns
     return fallback
+
+
+def _start_fields(meta: dict[str, Any]) -> None:
+    """Fill ``start_wall_ns`` (now, unless given) and ``start_time`` (ISO 8601 UTC of it)."""
+    start = meta.setdefault("start_wall_ns", time.time_ns())
+    if not (isinstance(start, int) and not isinstance(start, bool) and 0 <= start <= _U64_MAX):
+        raise ConfigError("metadata.start_wall_ns", start,
+                          "an integer >= 0 (ns since the Unix epoch)")
+    if "start_time" not in meta:
+        sec, ns = divmod(start, 1_000_000_000)
+        when = datetime.datetime.fromtimestamp(sec, datetime.timezone.utc)
+        meta["start_time"] = when.strftime("%Y-%m-%dT%H:%M:%S") + f".{ns:09d}Z"
 
 
 class _Sink:
@@ -257,9 +308,11 @@ class McapRecorder:
 
     - ``path``: file to create, or a writable binary stream (left open on close).
     - ``metadata``: the run's ``/run`` message (protocol, seed, rate_hz, devices...);
-      ``dentibot_version`` is filled in when absent. ``rate_hz`` (> 0) sets the period used
-      for ``duration_s`` (ticks x period) and the tick budget; without it, the last row's ``t``
-      and :data:`DEFAULT_RATE_HZ`.
+      ``dentibot_version`` is filled in when absent, and so are ``start_wall_ns`` (the wall
+      clock now, ns since the epoch: give it to share one start with a live view) and
+      ``start_time``. ``rate_hz`` (> 0) sets the period used for ``duration_s`` (ticks x
+      period) and the tick budget; without it, the last row's ``t`` and
+      :data:`DEFAULT_RATE_HZ`.
     - ``max_at_risk_s`` [0.1]: most procedure time a crash may lose; the budget in ticks is
       this x rate_hz (at least 1).
     - ``max_queue`` [None]: the budget in ticks, given directly (overrides ``max_at_risk_s``).
@@ -273,6 +326,9 @@ class McapRecorder:
     - ``validate`` [True]: check rows against the schema in the writer thread; invalid rows
       are still written, counted in ``rows_invalid`` and logged.
     - ``overwrite`` [False]: replace an existing file instead of refusing.
+    - ``view`` [True]: the 3D channels ``/tf`` and ``/scene``: a
+      :class:`~dentibot.telemetry.foxglove.FoxgloveView` (e.g. with the tool geometry), True
+      for the default view, False or None for none.
 
     The writer is a daemon thread: call :meth:`close` (or use ``with``); a process that ends
     without it leaves a file readable up to its last flush, flagged incomplete.
@@ -281,7 +337,8 @@ class McapRecorder:
     (overflow), ``rows_rejected`` (not serialisable, skipped), ``rows_invalid``,
     ``nonfinite_rows``, ``flushes``, ``rows_flushed`` (ticks on disk at the last flush),
     ``bytes_flushed``, ``queue_depth_max``, ``at_risk_max`` (most ticks handed over and not
-    yet flushed, seen by ``record()``), ``backpressure_waits``.
+    yet flushed, seen by ``record()``), ``backpressure_waits``, ``transforms_written``,
+    ``scenes_written``, ``view_errors``.
     """
 
     def __init__(self, path: str | os.PathLike[str] | BinaryIO,
@@ -289,7 +346,8 @@ class McapRecorder:
                  max_at_risk_s: float = 0.1, max_queue: int | None = None,
                  max_wait_s: float = 1.0, flush_interval_s: float = 0.05, poll_s: float = 0.01,
                  chunk_size: int = 1 << 20, compression: str = "zstd",
-                 fsync: bool = False, validate: bool = True, overwrite: bool = False) -> None:
+                 fsync: bool = False, validate: bool = True, overwrite: bool = False,
+                 view: FoxgloveView | bool | None = True) -> None:
         if not flush_interval_s > 0:
             raise ConfigError("telemetry.flush_interval_s", flush_interval_s, "> 0 s")
         if not poll_s > 0:
@@ -308,14 +366,25 @@ class McapRecorder:
                                      and math.isfinite(rate) and rate > 0):
             raise ConfigError("metadata.rate_hz", rate, "a finite number > 0 (Hz)")
         meta.setdefault("dentibot_version", _dentibot_version())
+        _start_fields(meta)
+        if view is True:
+            view = FoxgloveView()
+        elif view is False:
+            view = None
+        elif view is not None and not isinstance(view, FoxgloveView):
+            raise ConfigError("telemetry.view", view, "a FoxgloveView, True or False")
         try:                                 # checked before any file is created
-            run_json = json.dumps(meta, allow_nan=False, default=_json_default).encode()
+            run_json = json.dumps(_without_none(meta), allow_nan=False,
+                                  default=_json_default).encode()
             run_text = {k: v if isinstance(v, str) else json.dumps(v, default=_json_default)
-                        for k, v in meta.items()}
+                        for k, v in meta.items() if v is not None}
         except (TypeError, ValueError) as exc:
             raise ConfigError("metadata", meta, "JSON-serialisable, finite values",
                               str(exc)) from exc
         self.metadata = meta
+        #: wall-clock time of t = 0 (ns since the epoch): messages are logged at this + t
+        self.start_wall_ns: int = meta["start_wall_ns"]
+        self.view: FoxgloveView | None = view
         self.period_s: float | None = 1.0 / rate if rate else None
 
         #: most ticks handed over and not yet flushed (queued + in the unfinished chunk)
@@ -344,6 +413,9 @@ class McapRecorder:
         self.flushes = 0
         self.rows_flushed = 0
         self.bytes_flushed = 0
+        self.transforms_written = 0
+        self.scenes_written = 0
+        self.view_errors = 0
 
         self._queue: collections.deque[tuple[str, Any]] = collections.deque()
         self._stop = threading.Event()
@@ -354,7 +426,8 @@ class McapRecorder:
         self._closed = False
         self._last_t: float = 0.0
         self._last_tick: int = 0
-        self._last_log_ns = 0
+        self._last_log_ns = self.start_wall_ns
+        self._last_scene_t: float | None = None
         self._ticks_done = 0                    # tick items the writer has dealt with
         self._settled = 0                       # ... of which are flushed (or rejected)
         self._unflushed = 0                     # items in the unfinished chunk
@@ -384,14 +457,18 @@ class McapRecorder:
                                   compression=COMPRESSIONS[compression])
             self._writer.start(profile=PROFILE, library=f"dentibot {meta['dentibot_version']}")
             self._channels: dict[str, int] = {}
-            for topic, (title, _fields, _extra) in TOPICS.items():
+            schemas = {topic: json_schema(topic) for topic in TOPICS}
+            if self.view is not None:
+                schemas.update(FOXGLOVE_TOPICS)
+            for topic, schema in schemas.items():
                 schema_id = self._writer.register_schema(
-                    name=title, encoding=SCHEMA_ENCODING,
-                    data=json.dumps(json_schema(topic)).encode())
+                    name=schema["title"], encoding=SCHEMA_ENCODING,
+                    data=json.dumps(schema).encode())
                 self._channels[topic] = self._writer.register_channel(
                     topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=schema_id)
             self._writer.add_metadata(RUN_METADATA_NAME, run_text)
-            self._writer.add_message(self._channels["/run"], 0, run_json, 0)
+            self._writer.add_message(self._channels["/run"], self.start_wall_ns, run_json,
+                                     self.start_wall_ns)
             self._unflushed = 1
             self._flush()
         except McapError as exc:                     # compression library missing
@@ -604,8 +681,10 @@ class McapRecorder:
             data = orjson.dumps(obj, default=_json_default, option=_ORJSON_OPTIONS)
         except TypeError:                         # beyond orjson: big ints, odd keys, objects
             return self._encode_std(obj, what)
-        if _nonfinite(obj):
+        if _nonfinite(obj):                       # orjson wrote null: leave the field out
             self._count_nonfinite(what)
+            data = orjson.dumps(_without_none(_finite(obj)), default=_json_default,
+                                option=_ORJSON_OPTIONS)
         return data
 
     def _encode_std(self, obj: Any, what: str) -> bytes | None:
@@ -616,7 +695,7 @@ class McapRecorder:
         except (TypeError, RecursionError) as exc:
             return self._reject(what, exc)
         try:
-            data = _dumps(_finite(obj))
+            data = _dumps(_without_none(_finite(obj)))
         except (TypeError, ValueError, RecursionError) as exc:
             return self._reject(what, exc)
         self._count_nonfinite(what)
@@ -635,10 +714,10 @@ class McapRecorder:
                       error=str(exc), rows_rejected=self.rows_rejected)
 
     def _write(self, topic: str, obj: dict[str, Any], t: Any, sequence: int = 0) -> bool:
-        data = self._encode(obj, topic)
+        data = self._encode(_without_none(obj), topic)
         if data is None:
             return False
-        log_ns = _log_time_ns(t, self._last_log_ns)
+        log_ns = _log_time_ns(self.start_wall_ns, t, self._last_log_ns)
         self._last_log_ns = log_ns
         self._writer.add_message(self._channels[topic], log_ns, data, log_ns,
                                  sequence=sequence & 0xFFFFFFFF)
@@ -661,10 +740,12 @@ class McapRecorder:
             self._reject("/tick", TypeError(f"row is a {type(row).__name__}, not a dict"))
         else:
             tick = row.get("tick")
-            if self._write("/tick", row, row.get("t"),
-                           tick if isinstance(tick, int) and tick >= 0 else 0):
+            sequence = tick if isinstance(tick, int) and tick >= 0 else 0
+            if self._write("/tick", row, row.get("t"), sequence):
                 self.ticks_written += 1
                 self._unflushed_ticks += 1
+                if self.view is not None:
+                    self._write_view(row, sequence)
                 return
         # rejected: nothing to write, but the row counts as settled only at the next flush
         # (so the producer's budget is given back even if every row were rejected)
@@ -672,6 +753,37 @@ class McapRecorder:
             self._unflushed_since = time.monotonic()
         self._unflushed += 1
         self._unflushed_ticks += 1
+
+    def _write_view(self, row: dict[str, Any], sequence: int) -> None:
+        """The row's ``/tf`` message and, when due, its ``/scene``, at the row's log time. A
+        failure to draw the row (a malformed row, the caller's ``frames`` raising) costs the
+        row its 3D messages only (counted, logged); writing them goes the way of every
+        message (a write error is the writer's death, reported)."""
+        view, log_ns = self.view, self._last_log_ns
+        t = row.get("t")
+        try:
+            tf = view.transforms(row, log_ns)
+            tf_data = None if tf is None else orjson.dumps(tf)
+            scene_data = orjson.dumps(view.scene(row, log_ns)) \
+                if view.scene_due(t, self._last_scene_t) else None
+        except Exception as exc:  # noqa: BLE001 - a drawing problem, never the recording's
+            self.view_errors += 1
+            if self.view_errors <= _LOG_FIRST:
+                log.warning("telemetry.view_failed", path=str(self.path), tick=row.get("tick"),
+                            error=repr(exc), view_errors=self.view_errors)
+            return
+        sequence &= 0xFFFFFFFF
+        if tf_data is not None:
+            self._writer.add_message(self._channels[TF_TOPIC], log_ns, tf_data, log_ns,
+                                     sequence=sequence)
+            self.transforms_written += 1
+            self._unflushed += 1
+        if scene_data is not None:
+            self._last_scene_t = float(t)
+            self._writer.add_message(self._channels[SCENE_TOPIC], log_ns, scene_data, log_ns,
+                                     sequence=sequence)
+            self.scenes_written += 1
+            self._unflushed += 1
 
     def _write_event(self, ev: dict[str, Any]) -> None:
         if self._write("/events", ev, ev["t"], ev["tick"] if isinstance(ev["tick"], int) else 0):

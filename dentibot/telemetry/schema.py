@@ -9,11 +9,23 @@ Channels of a recording (one MCAP channel per topic, ``json`` message encoding, 
 schemas, so the file opens in Foxglove):
 
 ==============  ==================================================================
-``/run``        once at the start: protocol, seed, rate_hz, devices, dentibot_version
+``/run``        once at the start: protocol, seed, rate_hz, devices, dentibot_version,
+                the wall-clock start (``start_wall_ns``, ``start_time``)
 ``/tick``       one row per control tick (:data:`TICK_FIELDS`)
 ``/events``     ``{t, tick, kind, detail}``: faults, state transitions, notes
 ``/run/end``    once at the end: ``{status, reason, duration_s}``
 ==============  ==================================================================
+
+(The 3D topics ``/tf`` and ``/scene`` use Foxglove's own schemas:
+:mod:`dentibot.telemetry.foxglove`.)
+
+Unknown values are left out, never written as ``null``. Foxglove's and Lichtblick's JSON-schema
+parser accepts exactly one ``type`` per property (``"type": ["number", "null"]`` makes the whole
+channel unreadable there), so a nullable field is declared with its own type only and is not
+``required``; a message leaves the field out when its value is None (unknown, e.g. the phantom
+pose on hardware), and :mod:`~dentibot.telemetry.reader` puts None back for every field of the
+table that a message lacks (:func:`none_fields`). Rows as the runtime builds them keep their
+None values: the recorder drops them while writing.
 
 Units follow docs/architecture.md: mm, deg, N, sensor torques N*m, file torque mNm, time s;
 lateness and compute time in microseconds.
@@ -38,6 +50,7 @@ __all__ = [
     "TelemetryError",
     "default_row",
     "json_schema",
+    "none_fields",
     "validate_row",
 ]
 
@@ -59,9 +72,11 @@ class Field:
     """One field of a telemetry message.
 
     ``json_type`` is the JSON Schema type of the value (or of each element when ``length`` is
-    set: then the value is an array of exactly ``length`` items). ``nullable`` allows ``null``
-    (a quantity unknown on this system, e.g. the phantom pose on hardware); ``optional``
-    fields may be left out of a row altogether (simulator-only truths).
+    set: then the value is an array of exactly ``length`` items; 0: of any length; -1: an
+    object whose values have that type, ``keys`` naming the usual ones). ``nullable`` allows
+    None (a quantity unknown on this system, e.g. the phantom pose on hardware), which the
+    file stores by leaving the field out; ``optional`` fields may be left out of a row
+    altogether (simulator-only truths).
     """
 
     name: str
@@ -71,6 +86,7 @@ class Field:
     length: int | None = None
     nullable: bool = False
     optional: bool = False
+    keys: tuple[str, ...] = ()
 
 
 # Element types of the JSON types used here: the Python values a reader gets back.
@@ -136,8 +152,15 @@ RUN_FIELDS: tuple[Field, ...] = (
     Field("protocol", "string", "", "treatment protocol name"),
     Field("seed", "integer", "", "random seed of the simulated world", nullable=True),
     Field("rate_hz", "number", "Hz", "control rate"),
-    Field("devices", "string", "", "device kind per role (arm, ft, handpiece, aux)", -1),
+    Field("devices", "string", "", "device kind per role (arm, ft, handpiece, aux)", -1,
+          keys=("arm", "ft", "handpiece", "aux")),
     Field("dentibot_version", "string", "", "version of the software that recorded"),
+    Field("start_wall_ns", "integer", "ns",
+          "wall-clock time of t = 0, since the Unix epoch (UTC): each message's log time is "
+          "this plus its t"),
+    Field("start_time", "string", "",
+          "the same instant as start_wall_ns, ISO 8601 UTC (exact where a viewer rounds "
+          "start_wall_ns to a double)"),
 )
 
 END_STATUSES: tuple[str, ...] = ("ok", "fault", "fracture", "aborted")
@@ -159,36 +182,54 @@ TOPICS: dict[str, tuple[str, tuple[Field, ...], bool]] = {
 
 
 def _field_schema(f: Field) -> dict[str, Any]:
-    """JSON Schema of one field. ``length`` 0 = array of any length, -1 = object of strings."""
+    """JSON Schema of one field: always one ``type`` (see the module docstring: a nullable
+    field is one that may be absent). An object field lists its usual ``keys`` as properties:
+    the viewers' parser walks an object's ``properties`` and fails on an object without."""
     if f.length is None:
         schema: dict[str, Any] = {"type": f.json_type}
     elif f.length == -1:
-        schema = {"type": "object", "additionalProperties": {"type": f.json_type}}
+        schema = {"type": "object",
+                  "properties": {k: {"type": f.json_type} for k in f.keys},
+                  "additionalProperties": {"type": f.json_type}}
     else:
         schema = {"type": "array", "items": {"type": f.json_type}}
         if f.length > 0:
             schema["minItems"] = schema["maxItems"] = f.length
-    if f.nullable:
-        schema["type"] = [schema["type"], "null"]
     desc = f.description + (f" [{f.unit}]" if f.unit else "")
+    if f.nullable:
+        desc += " (absent when unknown)"
     schema["description"] = desc
     return schema
 
 
-def json_schema(topic: str) -> dict[str, Any]:
-    """The JSON Schema (draft 2020-12) of the messages on ``topic``, derived from its fields."""
+def _topic(topic: str) -> tuple[str, tuple[Field, ...], bool]:
     try:
-        title, fields, extra = TOPICS[topic]
+        return TOPICS[topic]
     except KeyError:
         raise ConfigError("telemetry.topic", topic, f"one of {list(TOPICS)}") from None
+
+
+def json_schema(topic: str) -> dict[str, Any]:
+    """The JSON Schema (draft 2020-12) of the messages on ``topic``, derived from its fields.
+
+    Required: the fields that are neither nullable nor optional (an open schema, ``/run``,
+    requires none)."""
+    title, fields, extra = _topic(topic)
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "title": title,
         "type": "object",
         "properties": {f.name: _field_schema(f) for f in fields},
-        "required": [] if extra else [f.name for f in fields if not f.optional],
+        "required": [] if extra else [f.name for f in fields
+                                      if not (f.optional or f.nullable)],
         "additionalProperties": extra,
     }
+
+
+def none_fields(topic: str) -> dict[str, None]:
+    """Every field of ``topic`` set to None: what a reader starts a message from, so that a
+    field the file left out (its value was unknown) reads back as None."""
+    return dict.fromkeys(f.name for f in _topic(topic)[1])
 
 
 def _value_ok(value: Any, json_type: str) -> bool:
@@ -203,12 +244,13 @@ def validate_row(row: dict[str, Any], fields: tuple[Field, ...] = TICK_FIELDS) -
     """Problems of ``row`` against ``fields`` (empty list: the row is valid).
 
     Each problem names the field, the value found and what was expected. Non-finite floats
-    are problems (JSON has no NaN). Lists and tuples are both accepted as arrays.
+    are problems (JSON has no NaN). Lists and tuples are both accepted as arrays. A nullable
+    field may be None (as the runtime builds a row) or absent (as the file stores it).
     """
     problems: list[str] = []
     for f in fields:
         if f.name not in row:
-            if not f.optional:
+            if not (f.optional or f.nullable):
                 problems.append(f"{f.name}: missing")
             continue
         value = row[f.name]
@@ -221,7 +263,7 @@ def validate_row(row: dict[str, Any], fields: tuple[Field, ...] = TICK_FIELDS) -
                 problems.append(f"{f.name} = {value!r}: expected a finite {f.json_type}")
         elif f.length == -1:
             if not isinstance(value, dict) or not all(
-                    _value_ok(v, f.json_type) for v in value.values()):
+                    isinstance(k, str) and _value_ok(v, f.json_type) for k, v in value.items()):
                 problems.append(f"{f.name} = {value!r}: expected an object of {f.json_type}")
         elif not isinstance(value, (list, tuple)) or (f.length and len(value) != f.length):
             size = f"{f.length} " if f.length else ""

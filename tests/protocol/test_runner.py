@@ -88,3 +88,27 @@ async def test_cancel_stops_safely_and_still_writes_recording_and_summary(tmp_pa
     rec = read_recording(path)
     assert rec.complete and rec.status == "aborted"
     assert summarize_file(path).status == "aborted"
+
+
+@pytest.fixture(scope="module")
+def _foxglove_runtime():
+    """The Foxglove SDK keeps its I/O runtime (and a few sockets) for the life of the process
+    once a first server has started: start it before the suite's socket count is taken."""
+    from dentibot.telemetry.live import LiveView
+
+    LiveView({"protocol": "warm-up", "rate_hz": 500}, port=0).close()
+
+
+async def test_a_live_run_serves_every_tick_on_loopback_and_records_what_is_enforced(
+        tmp_path, _foxglove_runtime):
+    path = tmp_path / "live.mcap"
+    runner = ProtocolRunner(parse_protocol(SHORT), recording=path, live=0)
+    res = await runner.run()
+    live = runner.live
+    assert res.summary.status == "ok"
+    assert live.host == "127.0.0.1" and live.port > 0 and live.closed
+    assert live.rows_queued == res.summary.ticks and live.items_dropped == 0
+    run = read_recording(path).metadata
+    # the limits in force: 90 % of the file's 62 mNm, the drive's halfway to the strength
+    assert run["torque_limit_mnm"] == pytest.approx(55.8)
+    assert run["drive_limit_mnm"] == pytest.approx((55.8 + 62.0) / 2)

@@ -10,7 +10,9 @@ from dentibot.telemetry import default_row
 
 
 def ramp_row(i: int, rate_hz: float = 500.0, **over) -> dict:
-    """A valid row for tick ``i`` with values that differ from tick to tick."""
+    """A valid row for tick ``i`` with values that differ from tick to tick; like the
+    runtime's rows it carries the simulator's true depth, unknown (None) on every third tick,
+    so that round trips go through both ways of storing a nullable field."""
     t = i / rate_hz
     row = default_row(
         t=t, tick=i, step="approach" if i < 100 else "drilling",
@@ -20,7 +22,8 @@ def ramp_row(i: int, rate_hz: float = 500.0, **over) -> dict:
         phantom_pose=[200.0, 0.0, 100.0 + 0.001 * i, 0.0, 0.0, 0.0],
         wrench_h=[0.0, 0.0, -1.0 - 0.001 * i, 0.0, 0.0, 0.0],
         file_torque_mnm=0.25 * (i % 160), motor_rpm=300.0, fz_n=1.0, fz_star_n=0.75,
-        depth_mm=0.01 * i, working_length_mm=20.0, completeness=i / 10000.0,
+        depth_mm=0.01 * i, true_depth_mm=None if i % 3 == 0 else 0.01 * i + 0.002,
+        working_length_mm=20.0, completeness=i / 10000.0,
         reversals=i // 1000, events=["TargetReached"] if i % 1000 == 999 else [],
         lateness_us=float(i % 97), compute_us=120.0, overrun=(i % 1000 == 500))
     row.update(over)

@@ -16,7 +16,9 @@ from telemetry_helpers import GatedStream, ramp_row
 
 from dentibot.errors import ConfigError
 from dentibot.telemetry import McapRecorder, TelemetryError, json_schema, read_recording
+from dentibot.telemetry.foxglove import FOXGLOVE_TOPICS
 from dentibot.telemetry.recorder import TelemetryOverflow
+from dentibot.telemetry.schema import none_fields
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -56,11 +58,17 @@ def test_5000_rows_read_back_identical(tmp_path):
     assert got.column("q_deg").shape == (n, 6)
 
 
+# 2023-11-14 22:13:20 UTC is 1 700 000 000 s after the Unix epoch
+START_NS = 1_700_000_000_123_456_789
+START_ISO = "2023-11-14T22:13:20.123456789Z"
+
+
 def test_file_is_an_indexed_foxglove_ready_mcap(tmp_path):
     """The mcap library's indexed reader (as Foxglove reads it): json messages, jsonschema
-    schemas identical to the derived ones, log_time = t in ns, message counts per channel."""
+    schemas identical to the derived ones (and Foxglove's for the 3D topics), log_time =
+    publish_time = wall-clock start + t, message counts per channel."""
     path = tmp_path / "run.mcap"
-    with McapRecorder(path, META) as rec:
+    with McapRecorder(path, {**META, "start_wall_ns": START_NS}) as rec:
         for i in range(300):
             rec.record(ramp_row(i, RATE_HZ))
         rec.event("note", "hello")
@@ -68,18 +76,66 @@ def test_file_is_an_indexed_foxglove_ready_mcap(tmp_path):
         reader = make_reader(f)
         summary = reader.get_summary()
         topics = {c.topic: c for c in summary.channels.values()}
-        assert set(topics) == {"/run", "/tick", "/events", "/run/end"}
+        assert set(topics) == {"/run", "/tick", "/events", "/run/end", "/tf", "/scene"}
         for topic, channel in topics.items():
             assert channel.message_encoding == "json"
             schema = summary.schemas[channel.schema_id]
             assert schema.encoding == "jsonschema"
-            assert json.loads(schema.data) == json_schema(topic)
+            expected = FOXGLOVE_TOPICS[topic] if topic in FOXGLOVE_TOPICS else json_schema(topic)
+            assert json.loads(schema.data) == expected
+            assert schema.name == expected["title"]
         counts = summary.statistics.channel_message_counts
         assert counts[topics["/tick"].id] == 300 and counts[topics["/events"].id] == 1
-        ticks = [(m.log_time, json.loads(m.data)) for _s, c, m in
+        assert counts[topics["/tf"].id] == 300
+        assert counts[topics["/scene"].id] == 300 // 10      # 50 Hz of 500 Hz ticks
+        ticks = [(m.log_time, m.publish_time, json.loads(m.data)) for _s, c, m in
                  reader.iter_messages(topics=["/tick"])]
-    assert [lt for lt, _row in ticks] == [round(i / RATE_HZ * 1e9) for i in range(300)]
-    assert [row["tick"] for _lt, row in ticks] == list(range(300))
+        (_s, _c, run), = reader.iter_messages(topics=["/run"])
+        events = [m.log_time for _s, _c, m in reader.iter_messages(topics=["/events"])]
+        assert summary.statistics.message_start_time == START_NS
+    expected_ns = [START_NS + round(i / RATE_HZ * 1e9) for i in range(300)]
+    assert [lt for lt, _pt, _row in ticks] == expected_ns
+    assert [pt for _lt, pt, _row in ticks] == expected_ns
+    assert [row["tick"] for _lt, _pt, row in ticks] == list(range(300))
+    assert run.log_time == run.publish_time == START_NS
+    assert events == [expected_ns[-1]]                   # at the last row's t
+    meta = json.loads(run.data)
+    assert meta["start_wall_ns"] == START_NS and meta["start_time"] == START_ISO
+    got = read_recording(path)                           # the reader still works from t
+    assert got.metadata["start_wall_ns"] == START_NS
+    assert [r["t"] for r in got.rows] == [i / RATE_HZ for i in range(300)]
+
+
+def test_the_start_defaults_to_the_wall_clock_now(tmp_path):
+    before = time.time_ns()
+    with McapRecorder(tmp_path / "run.mcap", META) as rec:
+        rec.record(ramp_row(0))
+    after = time.time_ns()
+    assert before <= rec.start_wall_ns <= after
+    meta = read_recording(tmp_path / "run.mcap").metadata
+    assert meta["start_wall_ns"] == rec.start_wall_ns
+    assert meta["start_time"].endswith("Z") and meta["start_time"][:4] >= "2024"
+    with pytest.raises(ConfigError, match="start_wall_ns"):
+        McapRecorder(tmp_path / "bad.mcap", {"start_wall_ns": -1})
+
+
+def test_unknown_values_are_left_out_of_the_file_and_read_back_as_none(tmp_path):
+    """The file holds no null at the top of a message (Foxglove's parser takes one type per
+    field); the reader gives the row back as it was handed over, None values included."""
+    path = tmp_path / "run.mcap"
+    row = ramp_row(0, phantom_pose=None, depth_mm=None, completeness=None)
+    assert row["true_depth_mm"] is None
+    with McapRecorder(path, {**META, "seed": None}) as rec:
+        rec.record(row)
+    with open(path, "rb") as f:
+        msgs = {c.topic: json.loads(m.data) for _s, c, m in make_reader(f).iter_messages()}
+    for name in ("phantom_pose", "depth_mm", "completeness", "true_depth_mm"):
+        assert name not in msgs["/tick"]
+    assert None not in msgs["/tick"].values()
+    assert "seed" not in msgs["/run"]
+    got = read_recording(path)
+    assert got.rows == [row]
+    assert got.metadata["seed"] is None
 
 
 def _stuck_writer(max_wait_s: float) -> tuple[GatedStream, McapRecorder]:
@@ -218,8 +274,14 @@ def test_nan_becomes_null_numpy_is_accepted_bad_rows_are_counted(tmp_path):
     assert rec.ticks_written == 3
     rows = read_recording(path).rows
     assert rows[0]["fz_n"] is None and rows[0]["q_deg"] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
-    assert rows[1] == {"t": 0.004, "tick": 2}
+    # the sparse row: the file cannot tell an absent field from an unknown one, and the
+    # reader gives every field of the table back (None where the message has none)
+    assert rows[1] == {**none_fields("/tick"), "t": 0.004, "tick": 2}
     assert rows[2] == ramp_row(3)
+    with open(path, "rb") as f:
+        first = next(json.loads(m.data) for _s, c, m in make_reader(f).iter_messages()
+                     if c.topic == "/tick")
+    assert "fz_n" not in first                         # NaN is left out, not written as null
 
 
 def test_event_defaults_to_the_last_row_and_exit_on_exception_aborts(tmp_path):

@@ -15,6 +15,7 @@ from dentibot.telemetry import (
     json_schema,
     validate_row,
 )
+from dentibot.telemetry.schema import none_fields
 
 # The fields the telemetry spec asks for, in its order, with their array sizes.
 SPEC_FIELDS = {
@@ -48,12 +49,15 @@ def test_json_schema_is_derived_from_the_field_table():
     json.dumps(schema)                                    # serialisable as is
     assert schema["type"] == "object" and schema["additionalProperties"] is False
     assert list(schema["properties"]) == list(SPEC_FIELDS)
-    assert schema["required"] == [f for f in SPEC_FIELDS if f not in OPTIONAL]
+    # a nullable field is left out of a message when unknown: not required, one type only
+    # (Foxglove's JSON-schema parser takes a single "type" per property)
+    assert schema["required"] == [f for f in SPEC_FIELDS if f not in OPTIONAL | NULLABLE]
     q = schema["properties"]["q_deg"]
     assert q["type"] == "array" and q["items"] == {"type": "number"}
     assert q["minItems"] == q["maxItems"] == 6
-    assert schema["properties"]["phantom_pose"]["type"] == ["array", "null"]
-    assert schema["properties"]["depth_mm"]["type"] == ["number", "null"]
+    assert schema["properties"]["phantom_pose"]["type"] == "array"
+    assert schema["properties"]["depth_mm"]["type"] == "number"
+    assert "absent when unknown" in schema["properties"]["depth_mm"]["description"]
     assert schema["properties"]["tick"]["type"] == "integer"
     assert schema["properties"]["overrun"]["type"] == "boolean"
     events = schema["properties"]["events"]
@@ -101,6 +105,31 @@ def test_validate_row_reports_a_missing_field():
     row = default_row()
     del row["lateness_us"]
     assert validate_row(row) == ["lateness_us: missing"]
+
+
+def test_a_nullable_field_may_be_absent_a_required_one_may_not():
+    """As the file stores a row: the unknown values left out."""
+    row = default_row()
+    for name in NULLABLE:
+        row.pop(name, None)
+    assert validate_row(row) == []
+    del row["fz_n"]
+    assert validate_row(row) == ["fz_n: missing"]
+
+
+def test_run_schema_records_the_wall_clock_start_and_lists_the_device_roles():
+    run = json_schema("/run")["properties"]
+    assert run["start_wall_ns"]["type"] == "integer"
+    assert run["start_time"]["type"] == "string"
+    assert run["seed"]["type"] == "integer"                # nullable: absent when unknown
+    devices = run["devices"]
+    assert devices["type"] == "object"
+    assert set(devices["properties"]) == {"arm", "ft", "handpiece", "aux"}
+
+
+def test_none_fields_is_every_field_of_the_topic():
+    assert none_fields("/tick") == dict.fromkeys(SPEC_FIELDS)
+    assert none_fields("/run/end") == {"status": None, "reason": None, "duration_s": None}
 
 
 def test_tuples_and_nulls_where_allowed_are_valid():
