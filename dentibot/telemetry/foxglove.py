@@ -555,3 +555,15 @@ class FoxgloveView:
                           "orientation": _q(_arrow_quat((f[0] / n, f[1] / n, f[2] / n)))},
                  "shaft_length": length - head, "shaft_diameter": 0.8 * _MM,
                  "head_length": head, "head_diameter": 2.4 * _MM, "color": _FORCE_COLOR}]
+
+
+def as_view(view: FoxgloveView | bool | None, field: str) -> FoxgloveView | None:
+    """A ``view`` argument of the recorder or the live view: True -> the default view (file tip
+    from the base only), False/None -> none, else a :class:`FoxgloveView`."""
+    if view is True:
+        return FoxgloveView()
+    if view is False or view is None:
+        return None
+    if not isinstance(view, FoxgloveView):
+        raise ConfigError(field, view, "a FoxgloveView, True or False")
+    return view

@@ -40,7 +40,13 @@ import orjson
 import structlog
 
 from dentibot.errors import ConfigError
-from dentibot.telemetry.foxglove import FOXGLOVE_TOPICS, SCENE_TOPIC, TF_TOPIC, FoxgloveView
+from dentibot.telemetry.foxglove import (
+    FOXGLOVE_TOPICS,
+    SCENE_TOPIC,
+    TF_TOPIC,
+    FoxgloveView,
+    as_view,
+)
 from dentibot.telemetry.recorder import (
     _dentibot_version,
     _finite,
@@ -108,12 +114,7 @@ class LiveView:
         meta = dict(metadata or {})
         meta.setdefault("dentibot_version", _dentibot_version())
         _start_fields(meta)
-        if view is True:
-            view = FoxgloveView()
-        elif view is False:
-            view = None
-        elif view is not None and not isinstance(view, FoxgloveView):
-            raise ConfigError("live.view", view, "a FoxgloveView, True or False")
+        view = as_view(view, "live.view")
         try:
             self._run_json = orjson.dumps(_without_none(meta), default=_json_default,
                                           option=_ORJSON_OPTIONS)

@@ -97,7 +97,13 @@ from mcap.records import DataEnd, Footer
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from dentibot.errors import ConfigError
-from dentibot.telemetry.foxglove import FOXGLOVE_TOPICS, SCENE_TOPIC, TF_TOPIC, FoxgloveView
+from dentibot.telemetry.foxglove import (
+    FOXGLOVE_TOPICS,
+    SCENE_TOPIC,
+    TF_TOPIC,
+    FoxgloveView,
+    as_view,
+)
 from dentibot.telemetry.schema import (
     END_STATUSES,
     TOPICS,
@@ -367,12 +373,7 @@ class McapRecorder:
             raise ConfigError("metadata.rate_hz", rate, "a finite number > 0 (Hz)")
         meta.setdefault("dentibot_version", _dentibot_version())
         _start_fields(meta)
-        if view is True:
-            view = FoxgloveView()
-        elif view is False:
-            view = None
-        elif view is not None and not isinstance(view, FoxgloveView):
-            raise ConfigError("telemetry.view", view, "a FoxgloveView, True or False")
+        view = as_view(view, "telemetry.view")
         try:                                 # checked before any file is created
             run_json = json.dumps(_without_none(meta), allow_nan=False,
                                   default=_json_default).encode()
