@@ -584,6 +584,13 @@ class SessionController:
                             {"arm": "meca500", "ft": "netft", "handpiece": "epos4",
                              "aux": "modbus" if self.devices_cfg.aux else "none"}),
                 "file_torque_limit_mnm": p.file.torsional_strength_mnm}
+        rt = self.runtime
+        if rt is not None:
+            # the rows' procedure time t is already running: the wall clock at t = 0, so that
+            # each message's log time (start + t) is when its tick ran
+            meta["start_wall_ns"] = time.time_ns() - round(rt.ticks * rt.ts * 1e9)
+            th = rt.cfg.thresholds
+            meta.update(torque_limit_mnm=th.torque_limit_mnm, drive_limit_mnm=th.drive_limit_mnm)
 
         def create():
             path.parent.mkdir(parents=True, exist_ok=True)

@@ -4,6 +4,7 @@ refusals, and the real-time clock on the built-in simulator."""
 from __future__ import annotations
 
 import asyncio
+import time
 
 import numpy as np
 import pytest
@@ -221,8 +222,9 @@ async def test_record_start_stop_writes_every_tick_and_the_events(stepped, tmp_p
     c = stepped
     c.opt.calibrated = True
     await say(c, "connect")
-    await c.advance(0.1)
+    await c.advance(8.0)
     path = tmp_path / "s.mcap"
+    wall_ns = time.time_ns()
     assert (await say(c, f"record start {path}")).kind == "ok"
     assert (await say(c, "record start")).kind == "info"          # one at a time
     await say(c, "align")
@@ -233,6 +235,9 @@ async def test_record_start_stop_writes_every_tick_and_the_events(stepped, tmp_p
     assert r.kind == "ok" and "250 ticks" in r.text               # 0.5 s at 500 Hz
     rec = read_recording(path)
     assert rec.complete and rec.status == "ok" and rec.metadata["session"] is True
+    # started mid-run: the first recorded tick (t = 8 s) is logged when it ran, not 8 s later
+    first_ns = rec.metadata["start_wall_ns"] + round(rec.rows[0]["t"] * 1e9)
+    assert abs(first_ns - wall_ns) < 2e9
     ticks = [row["tick"] for row in rec.rows]
     assert len(ticks) == 250 and ticks == list(range(ticks[0], ticks[0] + 250))
     assert {row["step"] for row in rec.rows} >= {"1:align"}
