@@ -358,6 +358,10 @@ class AuxModbusDriver:
         """Acknowledge a latched :class:`WatchdogOverwritten` (the operator's reset)."""
         self.watchdog_fault = None
 
+    async def recover(self) -> None:
+        """After a fault, on the operator's reset: acknowledge a watchdog fault."""
+        self.clear_watchdog_fault()
+
     async def _poll_once(self) -> None:
         first, n = span(Table.INPUT_REGISTER)
         self.polls += 1

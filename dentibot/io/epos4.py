@@ -1290,6 +1290,12 @@ class Epos4Driver:
         self._cw = CONTROLWORD[Command.ENABLE_OPERATION]
         log.info("epos4 operation enabled", device=self.name)
 
+    async def recover(self) -> None:
+        """After a fault, on the operator's reset: clear a latched drive fault, then enable
+        the output (the velocity setpoint is 0: the file stays still until commanded)."""
+        await self.fault_reset()
+        await self.enable()
+
     async def fault_reset(self, timeout_s: float | None = None) -> None:
         """Clear a FAULT: controlword bit 7 low for a cycle, then high (rising edge); wait for
         SWITCH ON DISABLED. The drive stays disabled: call :meth:`enable` afterwards. No-op

@@ -119,6 +119,11 @@ class Arm(Protocol):
         """Decelerate to rest and drop pending motion."""
         ...
 
+    async def recover(self) -> None:
+        """On the operator's reset after a fault: back to ready (the error reset, motion resumed with an empty queue, the link reconnected if it dropped); never starts
+        motion. Raises a :class:`~dentibot.errors.DeviceFault` when it cannot."""
+        ...
+
 
 @runtime_checkable
 class ForceSensor(Protocol):
@@ -153,6 +158,11 @@ class Handpiece(Protocol):
         """Stop turning."""
         ...
 
+    async def recover(self) -> None:
+        """On the operator's reset after a fault: back to ready (a latched drive fault reset and the output enabled); never starts
+        motion. Raises a :class:`~dentibot.errors.DeviceFault` when it cannot."""
+        ...
+
     async def set_current_limit(self, amps: float) -> None:
         """Limit the motor current (A), hence the torque the file can be given (the drive's
         own bound, set before the first tick)."""
@@ -165,6 +175,11 @@ class AuxIO(Protocol):
 
     async def read(self) -> AuxState:
         """Newest auxiliary state."""
+        ...
+
+    async def recover(self) -> None:
+        """On the operator's reset after a fault: back to ready (a latched watchdog fault acknowledged); never starts
+        motion. Raises a :class:`~dentibot.errors.DeviceFault` when it cannot."""
         ...
 
     async def set_indicator(self, name: str, on: bool) -> None:

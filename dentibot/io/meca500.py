@@ -633,6 +633,16 @@ class Meca500Driver:
         await self._request("ResumeMotion")
         await self.get_status()
 
+    async def recover(self) -> None:
+        """After a fault, on the operator's reset: reconnect a dropped link, reset a latched
+        error, resume motion (the stop cleared the queue: nothing moves until commanded)."""
+        if not self.connected:
+            await self.reconnect()
+        if self.error_code:
+            await self.reset_error()
+        if self.paused:
+            await self.resume_motion()
+
     async def pause_motion(self) -> None:
         """PauseMotion -> [2042]: the arm decelerates, the queue is kept."""
         await self._request("PauseMotion", check=False)

@@ -70,3 +70,17 @@ async def arm_command(rt, est):
         return _ZERO6
     await arm.move_joints_vel(cmd.qdot_deg_s)
     return cmd.qdot_deg_s
+
+
+async def recover_all(motor, arm, aux) -> str | None:
+    """On the operator's reset: every device back to ready (the drive's fault reset and its
+    output enabled, the arm's error reset and motion resumed, the aux I/O's watchdog fault
+    acknowledged); the cause of the first that cannot, or None."""
+    for device in (motor, arm, aux):
+        if device is None:
+            continue
+        try:
+            await device.recover()
+        except Exception as exc:  # noqa: BLE001 - reported as the new fault's cause
+            return f"reset: {type(device).__name__} did not recover: {exc}"
+    return None

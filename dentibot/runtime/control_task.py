@@ -24,7 +24,7 @@ from dentibot.control.tick import forward_chain
 from dentibot.control.wrench import GravityModel
 from dentibot.errors import DentibotError, DeviceFault
 from dentibot.runtime.clock import Clock, DeadlineStats, quiet_collector
-from dentibot.runtime.actuate import arm_command, stop_all
+from dentibot.runtime.actuate import arm_command, recover_all, stop_all
 from dentibot.runtime.config import RuntimeConfig
 from dentibot.runtime.estimate import Devices, Estimate, MotorView, estimate
 from dentibot.runtime.rows import telemetry_row
@@ -101,9 +101,16 @@ class Runtime:
         return self.treatment.state
 
     async def command(self, trigger: str) -> Refusal | None:
-        """An operator command (pedal, terminal, protocol step): through the machine only."""
+        """An operator command (pedal, terminal, protocol step): through the machine only. A
+        reset out of ``fault`` also brings every device back to ready, or faults again."""
+        was_fault = self.state == "fault"
         refusal = await self.treatment.fire(trigger, "operator" if trigger == "fault" else None)
         self._note("command", trigger if refusal is None else str(refusal))
+        if refusal is None and was_fault and trigger == "reset":
+            cause = await recover_all(self.dev.motor, self.dev.arm, self.dev.aux)
+            if cause is not None:
+                await self.treatment.fire("fault", cause)
+                self._note("fault", cause)
         return refusal
 
     async def estop(self, cause: str = "software emergency stop") -> None:

@@ -41,6 +41,9 @@ class SimArm:
     async def reset_error(self) -> None:
         self.world.arm.reset_error()
 
+    async def recover(self) -> None:
+        self.world.arm.reset_error()
+
 
 class SimForceSensor:
     """ATI Mini40 over a World (implements ``dentibot.io.ForceSensor``)."""
@@ -82,6 +85,11 @@ class SimHandpiece:
     async def set_current_limit(self, amps: float) -> None:
         self.world.handpiece.set_current_limit(amps)
 
+    async def recover(self) -> None:
+        hp = self.world.handpiece
+        hp.fault = None
+        hp.enabled = True
+
 
 class SimAux:
     """Pedal, e-stop, indicators and the patient platform (implements ``dentibot.io.AuxIO``)."""
@@ -98,6 +106,9 @@ class SimAux:
 
     async def set_platform(self, mm) -> None:
         self.world.platform_mm = tuple(float(x) for x in mm)
+
+    async def recover(self) -> None:
+        """Nothing latches in the simulated aux I/O."""
 
 
 def make_devices(world: World) -> tuple[SimArm, SimForceSensor, SimHandpiece, SimAux]:

@@ -845,3 +845,21 @@ async def test_current_limit_is_written_read_back_and_limits_the_motor():
         with pytest.raises(SdoAbort) as e:
             await drv.sdo_write("motor_output_current_limit", 600)
         assert e.value.code == 0x0609_0031                        # value too high
+
+
+async def test_recover_is_the_operators_reset_of_a_drive_fault():
+    """``recover`` (what the runtime calls on reset): the fault reset then the enable
+    sequence (CiA 402 transitions 15, 2, 3, 4), the file at rest until commanded."""
+    async with rig() as r:
+        drv, node, world = r.drv, r.node, r.world
+        await drv.set_velocity(60.0)
+        await asyncio.sleep(0.1)
+        node.inject_emcy(0x2310)
+        await read_fault(drv)
+        assert await until(lambda: drv.state is State.FAULT)
+        await drv.recover()
+        assert drv.state is State.OPERATION_ENABLED and node.error_code == 0
+        assert node.transitions[-4:] == ["15", "2", "3", "4"]
+        assert world.handpiece.cmd_rpm == 0.0
+        await drv.recover()                                   # nothing to reset: a no-op
+        assert drv.state is State.OPERATION_ENABLED

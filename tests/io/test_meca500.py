@@ -682,3 +682,27 @@ async def test_driver_survives_garbage_from_the_robot():
             await d.read()
         assert await d.reset_error() == 2006
         await d.read()
+
+
+async def test_recover_after_an_error_and_after_a_dropped_link_leaves_the_arm_ready():
+    """The operator's reset (``recover``): error reset and motion resumed; a dropped link
+    reconnected first. Nothing moves until commanded; then commands are taken again."""
+    async with rig() as r:
+        r.world.teleport_arm((170.0, -10.0, 20.0, 0.0, 80.0, 0.0))
+        d = await ready(r.make(vel_timeout_s=0.2))
+        with pytest.raises(DeviceFault, match="1007"):
+            await stream(d, (20.0, 0, 0, 0, 0, 0), 2.0)
+        await until(lambda: d.status.error, what="status es=1")
+        await d.recover()
+        assert d.error_code == 0 and not d.paused and not d.status.error
+        q0 = r.world.arm.q[0]
+        await world_wait(r.world, 0.05)
+        assert r.world.arm.q[0] == q0                       # nothing moved by itself
+        r.server.drop_clients()
+        await until(lambda: not d.connected, what="link loss noticed")
+        await d.recover()
+        assert d.connected and not d.paused
+        q1 = (await fresh(d))[0].q_deg[0]
+        await stream(d, (-10.0, 0, 0, 0, 0, 0), 0.2)
+        await world_wait(r.world, 0.05)
+        assert (await fresh(d))[0].q_deg[0] < q1 - 1.0

@@ -361,3 +361,23 @@ async def test_an_axial_jerk_onto_the_file_does_not_break_it(mm_s):
                                                          rel=1e-3)
 
 
+
+
+async def test_reset_after_a_drive_fault_brings_the_devices_back_to_ready():
+    """The drive disables its output while drilling (no EMCY): fault; the operator's reset
+    re-enables it, and the next drilling turns the file again."""
+    h, rows = harness(seed=6)
+    w = h.world
+    await h.command("drill")
+    await h.run_for(ticks=500)
+    w.handpiece.enabled = False
+    w.handpiece.stop()
+    assert await h.run_for(ticks=50, until=lambda r: r.state == "fault")
+    assert "handpiece_disabled" in h.runtime.treatment.fault_causes[0]
+    assert await h.command("reset") is None
+    assert h.runtime.state == "idle" and w.handpiece.enabled
+    await h.run_for(ticks=10)
+    assert await h.command("drill") is None
+    await h.run_for(ticks=200)
+    assert h.runtime.state.startswith("treating.drilling"), h.runtime.treatment.fault_causes
+    assert abs(w.handpiece.omega_rpm - 60.0) < 1.0
