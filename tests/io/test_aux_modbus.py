@@ -17,6 +17,7 @@ import struct
 from pathlib import Path
 
 import pytest
+from silent_peer import silent_peer
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from pymodbus.client import AsyncModbusTcpClient
@@ -762,14 +763,7 @@ async def test_host_lost_is_a_relay_output():
 
 
 async def test_connect_to_a_peer_that_never_answers_is_a_typed_timeout():
-    accepted: list[asyncio.StreamWriter] = []
-
-    async def silent(reader, writer):
-        accepted.append(writer)
-
-    server = await asyncio.start_server(silent, LOCAL, 0)
-    port = server.sockets[0].getsockname()[1]
-    try:
+    async with silent_peer() as port:
         drv = driver(port, request_timeout_s=5.0, connect_timeout_s=0.3)
         loop = asyncio.get_running_loop()
         t0 = loop.time()
@@ -779,8 +773,3 @@ async def test_connect_to_a_peer_that_never_answers_is_a_typed_timeout():
         assert e.value.device == "aux-modbus" and f"{LOCAL}:{port}" in str(e.value)
         assert "identification" in str(e.value)
         await drv.close()
-    finally:
-        for w in accepted:
-            w.close()
-        server.close()
-        await server.wait_closed()

@@ -21,6 +21,7 @@ import can
 import canopen
 import numpy as np
 import pytest
+from silent_peer import silent_peer
 
 from dentibot.errors import ConfigError, DeviceFault
 from dentibot.io import Handpiece
@@ -740,14 +741,7 @@ async def test_sto_opened_by_another_source_cuts_the_power_stage_at_once():
 
 
 async def test_socketcand_peer_that_never_greets_is_a_typed_timeout():
-    accepted: list[asyncio.StreamWriter] = []
-
-    async def silent(reader, writer):
-        accepted.append(writer)
-
-    server = await asyncio.start_server(silent, "127.0.0.1", 0)
-    port = server.sockets[0].getsockname()[1]
-    try:
+    async with silent_peer() as port:
         drv = Epos4Driver(interface="socketcand", host="127.0.0.1", port=port,
                           channel="vcan0", connect_timeout_s=0.3)
         t0 = time.monotonic()
@@ -757,18 +751,12 @@ async def test_socketcand_peer_that_never_greets_is_a_typed_timeout():
         assert e.value.device == "epos4" and f"127.0.0.1:{port}" in str(e.value)
         assert "greeting" in str(e.value)
         await drv.close()
-        # nothing listening at all: refused at once, a DeviceFault naming the address
-        server.close()
-        await server.wait_closed()
-        drv = Epos4Driver(interface="socketcand", host="127.0.0.1", port=port,
-                          channel="vcan0", connect_timeout_s=0.3)
-        with pytest.raises(DeviceFault, match=f"127.0.0.1:{port}"):
-            await drv.connect()
-        await drv.close()
-    finally:
-        for w in accepted:
-            w.close()
-        server.close()
+    # nothing listening at all: refused at once, a DeviceFault naming the address
+    drv = Epos4Driver(interface="socketcand", host="127.0.0.1", port=port,
+                      channel="vcan0", connect_timeout_s=0.3)
+    with pytest.raises(DeviceFault, match=f"127.0.0.1:{port}"):
+        await drv.connect()
+    await drv.close()
 
 
 def test_liveness_configuration_is_checked_before_anything_is_sent():

@@ -25,6 +25,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from silent_peer import silent_peer
 
 from dentibot.errors import ConfigError, DeviceFault
 from dentibot.io import Arm
@@ -637,14 +638,7 @@ async def test_a_silent_driver_loses_the_arm_within_the_watchdog_time():
 
 
 async def test_connect_to_a_silent_peer_is_a_typed_timeout_naming_the_address():
-    accepted: list[asyncio.StreamWriter] = []
-
-    async def silent(reader, writer):
-        accepted.append(writer)
-
-    server = await asyncio.start_server(silent, "127.0.0.1", 0)
-    port = server.sockets[0].getsockname()[1]
-    try:
+    async with silent_peer() as port:
         d = Meca500Driver("127.0.0.1", port, port + 1, response_timeout_s=0.3)
         t0 = time.monotonic()
         with pytest.raises(ConnectTimeout) as e:
@@ -654,11 +648,6 @@ async def test_connect_to_a_silent_peer_is_a_typed_timeout_naming_the_address():
         assert e.value.device == "meca500" and f"127.0.0.1:{port}" in str(e.value)
         assert "greeting" in str(e.value) and e.value.timeout_s == 0.3
         await d.close()
-    finally:
-        for w in accepted:
-            w.close()
-        server.close()
-        await server.wait_closed()
 
 
 async def test_driver_survives_garbage_from_the_robot():
