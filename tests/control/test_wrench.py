@@ -75,7 +75,7 @@ def test_identification_with_sensor_noise(mount_deg: float) -> None:
     """Tolerances from a 2000-trial Monte Carlo of this set-up (12 uniform random
     orientations, Mini40 noise), standard deviations: mass 0.57 g, centroid 0.11-0.14 mm,
     angle 0.16 deg, f0 0.003 N, tau0 0.00009 N*m. Tolerances are about 5 sigma (mass 3.5
-    sigma, the limit the brief sets)."""
+    sigma: 2 g, the load identification's required mass accuracy)."""
     rng = np.random.default_rng(1000 + int(mount_deg))
     n = 12
     R = Rotation.random(n, random_state=rng).as_matrix()
