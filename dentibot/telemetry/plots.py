@@ -13,8 +13,9 @@ Figures (file names ``<recording stem>-<name>.png``):
   tool z axis).
 - ``force_vs_position``: the same force against the depth in the canal (mm), or against the
   position along the initial file axis when the depth is unknown.
-- ``torque_feed``: file torque with the 62 mNm limit and the ``tau_d`` line (from the
-  metadata key ``tau_d_mnm``) over time; feed force ``fz_n`` and its set point ``fz_star_n``.
+- ``torque_feed``: file torque with the file's strength (62 mNm), the limit in force (the
+  runtime's, metadata ``torque_limit_mnm``) and the ``tau_d`` line (metadata ``tau_d_mnm``)
+  over time; feed force ``fz_n`` and its set point ``fz_star_n``.
 - ``state_timeline``: coloured bands per protocol step and per state over time.
 
 Matplotlib is used through :class:`matplotlib.figure.Figure` with the Agg canvas only
@@ -169,11 +170,16 @@ def _fig_torque_feed(rec: Recording, fig: Figure) -> str | None:
     ok = np.isfinite(t) & np.isfinite(tau)
     if ok.sum() < 2:
         return "no file torque in the recording"
-    limit = rec.metadata.get("file_torque_limit_mnm", FILE_TORQUE_LIMIT_MNM)
+    strength = rec.metadata.get("file_torque_limit_mnm", FILE_TORQUE_LIMIT_MNM)
+    enforced = rec.metadata.get("torque_limit_mnm")
     tau_d = rec.metadata.get("tau_d_mnm")
     ax_tau, ax_f = fig.subplots(2, 1, sharex=True)
     ax_tau.plot(t[ok], tau[ok], label="file torque")
-    ax_tau.axhline(limit, color="r", linestyle="--", label=f"limit {limit:g} mNm")
+    ax_tau.axhline(strength, color="r", linestyle="--",
+                   label=f"file strength {strength:g} mNm")
+    if isinstance(enforced, (int, float)):      # recordings from before it was recorded: none
+        ax_tau.axhline(enforced, color="orange", linestyle="--",
+                       label=f"limit in force {enforced:g} mNm")
     if isinstance(tau_d, (int, float)):
         ax_tau.axhline(tau_d, color="g", linestyle=":", label=f"tau_d {tau_d:g} mNm")
     ax_tau.set_ylabel("torque (mNm)")

@@ -92,3 +92,23 @@ def test_cli_errors_exit_2_with_a_message(command, tmp_path, capsys):
     junk.write_text("not a recording")
     assert main([command, str(junk), *extra]) == 2
     assert "not an MCAP file" in capsys.readouterr().err
+
+
+def test_the_torque_figure_shows_the_limit_in_force_beside_the_files_strength(tmp_path):
+    from matplotlib.figure import Figure
+
+    from dentibot.telemetry.plots import _fig_torque_feed
+    from dentibot.telemetry.reader import read_recording
+
+    path = tmp_path / "limits.mcap"
+    meta = {"protocol": "demo", "rate_hz": 500, "file_torque_limit_mnm": 62.0,
+            "torque_limit_mnm": 55.8, "tau_d_mnm": 40.0}
+    with McapRecorder(path, meta) as rec:
+        for i in range(50):
+            rec.record(ramp_row(i))
+    fig = Figure()
+    assert _fig_torque_feed(read_recording(path), fig) is None
+    lines = {ln.get_label(): ln.get_ydata()[0] for ln in fig.axes[0].get_lines()}
+    assert lines["file strength 62 mNm"] == 62.0
+    assert lines["limit in force 55.8 mNm"] == 55.8
+    assert lines["tau_d 40 mNm"] == 40.0
