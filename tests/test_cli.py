@@ -1,3 +1,5 @@
+import pytest
+
 from dentibot.cli import main
 
 
@@ -43,3 +45,24 @@ def test_sim_serve_passes_the_node_id_to_the_epos4_simulator(monkeypatch, capsys
     assert main(["sim", "serve", "--node-id", "7", "--duration", "0"]) == 0
     assert seen["ports"].node_id == 7
     assert "EPOS4 node 7" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, level, as_json", [
+    (["--log-level", "error", "report", "x.mcap"], "error", False),
+    (["report", "x.mcap", "--log-level", "debug"], "debug", False),
+    (["--log-level", "error", "report", "x.mcap", "--log-level", "info"], "info", False),
+    (["sim", "serve", "--log-json"], "warning", True),
+    (["report", "x.mcap"], "warning", False),
+])
+def test_logging_options_anywhere(argv, level, as_json):
+    from dentibot.cli import build_parser
+
+    args = build_parser().parse_args(argv)
+    assert (args.log_level, args.log_json) == (level, as_json)
+
+
+def test_sim_serve_help_shows_its_port_defaults(capsys):
+    with pytest.raises(SystemExit):
+        main(["sim", "serve", "--help"])
+    out = capsys.readouterr().out
+    assert "default: 10000" in out and "default: 49152" in out and "default: 5020" in out

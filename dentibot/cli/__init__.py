@@ -38,14 +38,32 @@ def build_parser() -> argparse.ArgumentParser:
 
     parser = argparse.ArgumentParser(prog="dentibot", description="The dentibot command line.")
     parser.add_argument("--version", action="version", version=f"dentibot {__version__}")
-    parser.add_argument("--log-level", default="warning",
-                        choices=["debug", "info", "warning", "error"],
-                        help="log level (logs go to stderr)")
-    parser.add_argument("--log-json", action="store_true", help="logs as JSON lines")
+    _logging_options(parser, top=True)
     sub = parser.add_subparsers(dest="command")
     for command in (run, sim, experiment, session, selftest, fk, report, recover, plot):
         command.add_parser(sub)
+    _logging_options_everywhere(parser)
     return parser
+
+
+def _logging_options(parser: argparse.ArgumentParser, top: bool = False) -> None:
+    """``--log-level`` and ``--log-json``; below the top level they default to nothing, so
+    the value given before the command stands unless the command's own is given."""
+    parser.add_argument("--log-level", default="warning" if top else argparse.SUPPRESS,
+                        choices=["debug", "info", "warning", "error"],
+                        help="log level (logs go to stderr)")
+    parser.add_argument("--log-json", action="store_true",
+                        default=False if top else argparse.SUPPRESS, help="logs as JSON lines")
+
+
+def _logging_options_everywhere(parser: argparse.ArgumentParser) -> None:
+    """The logging options after any command or subcommand too (``dentibot run X --log-level
+    info`` as well as ``dentibot --log-level info run X``)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _logging_options(sub)
+                _logging_options_everywhere(sub)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import sys
 
 from rich.console import Console
@@ -19,7 +20,7 @@ from dentibot.cli.common import user_errors
 from dentibot.io.devices import load_devices_config
 from dentibot.protocol.loader import load_protocol
 from dentibot.app.runner import EXIT_CODES, ProtocolRunner, step_duration_s
-from dentibot.telemetry import summary_json, summary_table
+from dentibot.telemetry import summary_table
 
 
 def _figures_text(f: dict) -> str:
@@ -74,7 +75,9 @@ def _run(args: argparse.Namespace) -> int:
 
 def _print_summary(summary, runner, args, console) -> None:
     if args.json:
-        print(summary_json(summary))
+        out = summary.to_dict()
+        out["recording"] = None if runner.path is None else str(runner.path)
+        print(json.dumps(out, indent=2))
     else:
         console.print(summary_table(summary))
         if runner.path is not None:

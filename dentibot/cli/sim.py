@@ -50,7 +50,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
 def add_parser(sub) -> None:
     sim = sub.add_parser("sim", help="simulators")
     simsub = sim.add_subparsers(dest="sim_command", required=True)
-    serve = simsub.add_parser("serve", help="serve a virtual DentiBot over the wire protocols")
+    serve = simsub.add_parser("serve", help="serve a virtual DentiBot over the wire protocols",
+                              formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     serve.add_argument("--host", default="127.0.0.1", help="address to bind (default loopback)")
     serve.add_argument("--meca-port", type=int, default=10000,
                        help="Meca500 control port; monitoring on the next port")

@@ -62,7 +62,7 @@ def test_a_signal_stops_safely_and_keeps_the_recording(tmp_path, sig, code):
     stdout, stderr = proc.communicate(timeout=60)
     assert proc.returncode == code, stderr[-2000:]
     summary = json.loads(stdout)
-    assert summary["status"] == "aborted"
+    assert summary["status"] == "aborted" and summary["recording"] == str(rec)
     r = read_recording(rec)
     assert r.complete and r.status == "aborted"
     assert any(row["state"].startswith("treating") for row in r.rows)
