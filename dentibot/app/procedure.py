@@ -222,6 +222,26 @@ class Procedure:
             raise
         return until is not None and bool(until(rt))
 
+    def outcome(self, ok_reason: str = "") -> tuple[str, str]:
+        """``(status, reason)`` of the procedure so far. A fracture is what the controller
+        detected (from the motor's torque signature); on the built-in simulator the world's
+        truth is added to the report (never to the controller), saying whether the controller
+        saw it."""
+        rt = self.runtime
+        detected = next((c for c in rt.treatment.fault_causes
+                         if c.startswith("fracture_suspected")), None)
+        w = self.world
+        if w is not None and w.fractured is not None:
+            f = w.fractured
+            seen = f"detected: {detected}" if detected else "not detected by the controller"
+            return "fracture", (f"file fractured by {f.cause} at {f.t:.2f} s, "
+                                f"{f.torque_mnm:.1f} mNm, depth {f.depth_mm:.2f} mm ({seen})")
+        if detected is not None:
+            return "fracture", detected
+        if rt.state == "fault":
+            return "fault", "; ".join(rt.treatment.fault_causes)
+        return "ok", ok_reason
+
     async def estop(self, cause: str) -> None:
         """Software emergency stop between two ticks: file and arm stopped at once, then the
         latched fault."""

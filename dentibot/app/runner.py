@@ -296,7 +296,7 @@ class ProtocolRunner:
                     break
             if proc.error is not None:
                 raise RuntimeError(proc.error)
-            status, reason = self._status()
+            status, reason = proc.outcome()
         except Aborted:
             await proc.safe_stop()
             return RunResult(self._close("aborted", self._abort_reason), self.path)
@@ -315,25 +315,6 @@ class ProtocolRunner:
             self._close("fault", f"{type(exc).__name__}: {exc}")
             raise
         return RunResult(self._close(status, reason), self.path)
-
-    def _status(self) -> tuple[str, str]:
-        """The run's outcome. A fracture is what the controller detected (from the motor's
-        torque signature); on the built-in simulator the world's truth is added to the report
-        (never to the controller), saying whether the controller saw it."""
-        rt = self.rt
-        detected = next((c for c in rt.treatment.fault_causes
-                         if c.startswith("fracture_suspected")), None)
-        w = self.world
-        if w is not None and w.fractured is not None:
-            f = w.fractured
-            seen = f"detected: {detected}" if detected else "not detected by the controller"
-            return "fracture", (f"file fractured by {f.cause} at {f.t:.2f} s, "
-                                f"{f.torque_mnm:.1f} mNm, depth {f.depth_mm:.2f} mm ({seen})")
-        if detected is not None:
-            return "fracture", detected
-        if rt.state == "fault":
-            return "fault", "; ".join(rt.treatment.fault_causes)
-        return "ok", ""
 
     def _close(self, status: str, reason: str) -> RunSummary:
         if self.live is not None:

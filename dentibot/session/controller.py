@@ -618,12 +618,9 @@ class SessionController:
                            f"dentibot report {rec.path})")
 
     def _end_status(self, reason: str) -> tuple[str, str]:
-        w = self.world
-        if w is not None and w.fractured is not None:
-            return "fracture", f"file fractured by {w.fractured.cause}"
-        if self.runtime is not None and self.runtime.state == "fault":
-            return "fault", "; ".join(self.runtime.treatment.fault_causes)
-        return "ok", reason
+        if self.procedure is None:
+            return "ok", reason
+        return self.procedure.outcome(reason)
 
     # ------------------------------------------------------------------ stopping
     async def toggle_pause(self) -> list[Reply]:
