@@ -48,15 +48,18 @@ FAULTS = ("ft_packet_loss", "ft_delay", "ft_stream_stop", "ft_nan", "ft_saturati
 HALF_OPEN_STOP_S = 2.0
 
 
-class _Jerk:
-    """The phantom's motion with a sideways jerk added from ``t0``."""
+class Jerk:
+    """The phantom's motion with a jerk added from ``t0``: ``mm`` along the unit vector
+    ``direction`` (base frame) at ``mm_s``, then held."""
 
-    def __init__(self, base, t0: float, mm: float = 5.0, mm_s: float = 100.0) -> None:
-        self.base, self.t0, self.mm, self.v = base, t0, mm, mm_s
+    def __init__(self, base, t0: float, direction=(1.0, 0.0, 0.0), mm: float = 5.0,
+                 mm_s: float = 100.0) -> None:
+        self.base, self.t0, self.d, self.mm, self.v = base, t0, tuple(direction), mm, mm_s
 
     def offset_mm(self, t: float):
         b = self.base.offset_mm(t)
-        return (b[0] + min(max(t - self.t0, 0.0) * self.v, self.mm), b[1], b[2])
+        s = min(max(t - self.t0, 0.0) * self.v, self.mm)
+        return (b[0] + s * self.d[0], b[1] + s * self.d[1], b[2] + s * self.d[2])
 
 
 class _Wrapped:
@@ -166,7 +169,7 @@ class FaultInjector:
         elif name == "file_binding":
             w.canal.debris_mm3 += 1.0
         elif name == "patient_jerk":
-            w.motion = _Jerk(w.motion, w.t)
+            w.motion = Jerk(w.motion, w.t)
         elif name == "handpiece_disabled":
             w.handpiece.enabled = False
             w.handpiece.stop()

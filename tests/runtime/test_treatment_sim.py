@@ -12,6 +12,7 @@ from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
 from dentibot.runtime.config import TreatmentPlan
 from dentibot.states.strategies import StrategyParams
 from dentibot.sim.canal import CanalParams
+from dentibot.sim.faults import Jerk as MotionJerk
 
 CANALS = {
     "straight": CanalParams(),
@@ -325,18 +326,6 @@ async def test_the_runtime_runs_the_tick_chain_of_control_tick(monkeypatch):
     np.testing.assert_array_equal(rows[-1]["qdot_cmd_deg_s"], calls["command"][-1])
 
 
-class _AxialJerk:
-    """The tooth moves ``mm`` towards the robot along the canal axis at ``mm_s`` from ``t0``."""
-
-    def __init__(self, base, t0: float, towards, mm: float = 3.0, mm_s: float = 40.0) -> None:
-        self.base, self.t0, self.d, self.mm, self.v = base, t0, towards, mm, mm_s
-
-    def offset_mm(self, t: float):
-        b = self.base.offset_mm(t)
-        s = min(max(t - self.t0, 0.0) * self.v, self.mm)
-        return (b[0] + s * self.d[0], b[1] + s * self.d[1], b[2] + s * self.d[2])
-
-
 @pytest.mark.parametrize("mm_s", [20.0, 40.0, 60.0, 100.0])
 async def test_an_axial_jerk_onto_the_file_does_not_break_it(mm_s):
     """The tooth pushed 3 mm onto the working file along the canal: the torque climbs about
@@ -352,7 +341,7 @@ async def test_an_axial_jerk_onto_the_file_does_not_break_it(mm_s):
                            and r.last_row["true_depth_mm"] > 8.0)
     k0 = len(rows)
     _, axis = w.canal_axis_0()
-    w.motion = _AxialJerk(w.motion, w.t, tuple(-x for x in axis), mm_s=mm_s)
+    w.motion = MotionJerk(w.motion, w.t, tuple(-x for x in axis), mm=3.0, mm_s=mm_s)
     await h.run_for(ticks=500)
     assert w.fractured is None
     assert max(abs(r["file_torque_mnm"]) for r in rows[k0:]) < FILE_TORQUE_LIMIT_MNM
