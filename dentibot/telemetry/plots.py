@@ -10,9 +10,12 @@ Figures (file names ``<recording stem>-<name>.png``):
   x, y, z (mm, from their first sample), and the distance between them (mm).
 - ``force_vs_velocity``: measured force along the file axis (z of ``wrench_h``) against the
   velocity along the file axis (mm/s; the tool position differentiated, projected on the
-  tool z axis).
+  tool z axis), one colour per phase (the state's first two levels).
 - ``force_vs_position``: the same force against the depth in the canal (mm), or against the
-  position along the initial file axis when the depth is unknown.
+  position along the initial file axis when the depth is unknown, coloured the same way.
+
+The three figures above leave out the load calibration's rows: its moves through the
+workspace span tens of millimetres and would flatten the few millimetres of the treatment.
 - ``torque_feed``: file torque with the file's strength (62 mNm), the limit in force (the
   runtime's, metadata ``torque_limit_mnm``) and the ``tau_d`` line (metadata ``tau_d_mnm``)
   over time; feed force ``fz_n`` and its set point ``fz_star_n``.
@@ -46,6 +49,7 @@ log = structlog.get_logger("dentibot.telemetry")
 FILE_TORQUE_LIMIT_MNM = 62.0
 
 _DPI = 100
+_LABEL_PT = 7
 _AXES = ("x", "y", "z")
 
 
@@ -59,6 +63,28 @@ class PlotSet(list):
 
 def _t(rec: Recording) -> np.ndarray:
     return rec.column("t")
+
+
+def _treatment(rec: Recording) -> np.ndarray:
+    """Rows outside the load calibration (state ``calibrating...``), as a boolean mask."""
+    return np.array([not str(s).startswith("calibrating") for s in rec.column("state")],
+                    dtype=bool)
+
+
+def _phase(rec: Recording) -> np.ndarray:
+    """The state's first two levels per row (``treating.drilling.feeding`` ->
+    ``treating.drilling``): the phases the force figures are coloured by."""
+    return np.array([".".join(str(s).split(".")[:2]) for s in rec.column("state")])
+
+
+def _scatter_by_phase(ax, x: np.ndarray, y: np.ndarray, phase: np.ndarray) -> None:
+    """One colour and legend entry per phase, in order of first appearance."""
+    seen = list(dict.fromkeys(phase.tolist()))
+    for i, name in enumerate(seen):
+        sel = phase == name
+        ax.plot(x[sel], y[sel], ".", markersize=2, color=f"C{i % 10}", label=name or "(none)")
+    if seen:
+        ax.legend(loc="best", markerscale=4, fontsize=8)
 
 
 def _valid_rows(a: np.ndarray) -> np.ndarray:
@@ -91,12 +117,16 @@ def _axial_force(rec: Recording) -> np.ndarray:
     return rec.column("wrench_h")[:, 2]
 
 
+def _insertion_rows(rec: Recording) -> np.ndarray:
+    """The rows :func:`_insertion` uses: treatment rows with a tool pose and a time."""
+    return _valid_rows(rec.column("tool_pose")) & np.isfinite(_t(rec)) & _treatment(rec)
+
+
 def _insertion(rec: Recording) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
-    """(t, position along the initial file axis mm, velocity along the file axis mm/s),
-    or the reason it cannot be computed."""
-    t, pose = _t(rec), rec.column("tool_pose")
-    ok = _valid_rows(pose) & np.isfinite(t)
-    t, pose = t[ok], pose[ok]
+    """(t, position along the initial file axis mm, velocity along the file axis mm/s) over
+    :func:`_insertion_rows`, or the reason it cannot be computed."""
+    ok = _insertion_rows(rec)
+    t, pose = _t(rec)[ok], rec.column("tool_pose")[ok]
     if len(t) < 3 or not np.all(np.diff(t) > 0):
         return "fewer than 3 tool poses with increasing t"
     z_axis = _rot_mobile_xyz(pose)[:, :, 2]
@@ -107,7 +137,7 @@ def _insertion(rec: Recording) -> tuple[np.ndarray, np.ndarray, np.ndarray] | st
 
 def _fig_position_vs_root(rec: Recording, fig: Figure) -> str | None:
     t, tool, root = _t(rec), rec.column("tool_pose"), rec.column("phantom_pose")
-    ok = _valid_rows(tool) & _valid_rows(root) & np.isfinite(t)
+    ok = _valid_rows(tool) & _valid_rows(root) & np.isfinite(t) & _treatment(rec)
     if ok.sum() < 2:
         return "no phantom pose in the recording (known on the simulator only)"
     t, tool, root = t[ok], tool[ok, :3], root[ok, :3]
@@ -129,12 +159,13 @@ def _fig_force_vs_velocity(rec: Recording, fig: Figure) -> str | None:
     if isinstance(ins, str):
         return ins
     _t_ins, _pos, vel = ins
-    fz = _axial_force(rec)[np.isfinite(_t(rec)) & _valid_rows(rec.column("tool_pose"))]
+    rows = _insertion_rows(rec)
+    fz, phase = _axial_force(rec)[rows], _phase(rec)[rows]
     ok = np.isfinite(fz)
     if ok.sum() < 2:
         return "no measured wrench (wrench_h) in the recording"
     ax = fig.subplots()
-    ax.plot(vel[ok], fz[ok], ".", markersize=2)
+    _scatter_by_phase(ax, vel[ok], fz[ok], phase[ok])
     ax.set_xlabel("velocity along the file axis (mm/s)")
     ax.set_ylabel(_FORCE_LABEL)
     ax.grid(True)
@@ -143,21 +174,23 @@ def _fig_force_vs_velocity(rec: Recording, fig: Figure) -> str | None:
 
 
 def _fig_force_vs_position(rec: Recording, fig: Figure) -> str | None:
-    fz, depth = _axial_force(rec), rec.column("depth_mm")
-    ok = np.isfinite(fz) & np.isfinite(depth)
+    fz, depth, phase = _axial_force(rec), rec.column("depth_mm"), _phase(rec)
+    ok = np.isfinite(fz) & np.isfinite(depth) & _treatment(rec)
     if ok.sum() >= 2:
-        x, fz, label = depth[ok], fz[ok], "depth in the canal (mm)"
+        x, fz, phase, label = depth[ok], fz[ok], phase[ok], "depth in the canal (mm)"
     else:
         ins = _insertion(rec)
         if isinstance(ins, str):
             return f"no depth and {ins}"
-        fz = fz[np.isfinite(_t(rec)) & _valid_rows(rec.column("tool_pose"))]
+        rows = _insertion_rows(rec)
+        fz, phase = fz[rows], phase[rows]
         ok = np.isfinite(fz)
         if ok.sum() < 2:
             return "no measured wrench (wrench_h) in the recording"
-        x, fz, label = ins[1][ok], fz[ok], "position along the initial file axis (mm)"
+        x, fz, phase = ins[1][ok], fz[ok], phase[ok]
+        label = "position along the initial file axis (mm)"
     ax = fig.subplots()
-    ax.plot(x, fz, ".", markersize=2)
+    _scatter_by_phase(ax, x, fz, phase)
     ax.set_xlabel(label)
     ax.set_ylabel(_FORCE_LABEL)
     ax.grid(True)
@@ -217,15 +250,20 @@ def _fig_state_timeline(rec: Recording, fig: Figure) -> str | None:
     ax = fig.subplots()
     t = t[ok]
     span = float(t[-1] - t[0]) or 1.0
+    # the axes' width in points (the legend takes about a quarter of the figure)
+    width_pt = 0.7 * fig.get_figwidth() * 72.0
     legend: dict[str, dict[str, str]] = {}
     for y, name in ((1, "step"), (0, "state")):
         colours = legend[name] = {}           # label -> colour, in order of first appearance
         for label, start, end in _segments(t, rec.column(name)[ok]):
             colour = colours.setdefault(label, f"C{len(colours) % 10}")
             ax.broken_barh([(start, end - start)], (y - 0.4, 0.8), facecolors=colour)
-            if end - start > 0.04 * span:
-                ax.text((start + end) / 2, y, label or "(none)", ha="center", va="center",
-                        fontsize=7, clip_on=True)
+            text = label or "(none)"
+            # written inside its band only where it fits: a character of a 7 pt font is at
+            # most 0.6 em wide, plus one em of margin; the legend names every band anyway
+            if (end - start) / span * width_pt > (len(text) + 1) * _LABEL_PT * 0.6:
+                ax.text((start + end) / 2, y, text, ha="center", va="center",
+                        fontsize=_LABEL_PT, clip_on=True)
     handles = [Patch(facecolor=c, label=f"{name}: {label or '(none)'}")
                for name, colours in legend.items() for label, c in colours.items()]
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7,

@@ -112,3 +112,91 @@ def test_the_torque_figure_shows_the_limit_in_force_beside_the_files_strength(tm
     assert lines["file strength 62 mNm"] == 62.0
     assert lines["limit in force 55.8 mNm"] == 55.8
     assert lines["tau_d 40 mNm"] == 40.0
+
+
+@pytest.fixture(scope="module")
+def calibrated_recording(tmp_path_factory):
+    """100 calibration rows that swing the tool 60 mm sideways, then 200 treatment rows that
+    move it 2 mm: the treatment's 2 mm must fill the position figure."""
+    path = tmp_path_factory.mktemp("runs") / "cal.mcap"
+    with McapRecorder(path, {"rate_hz": 500}) as rec:
+        for i in range(300):
+            over = {}
+            if i < 100:
+                over = dict(step="1:calibrate_load", state="calibrating.load",
+                            tool_pose=[190.0 + 0.6 * i, 0.0, 308.0, 0.0, 90.0, 0.0])
+            rec.record(ramp_row(i, **over))
+    return path
+
+
+def test_calibration_moves_are_left_out_of_the_spatial_figures(calibrated_recording):
+    from matplotlib.figure import Figure
+
+    from dentibot.telemetry.plots import _fig_force_vs_position, _fig_position_vs_root
+    from dentibot.telemetry.reader import read_recording
+
+    rec = read_recording(calibrated_recording)
+    fig = Figure()
+    assert _fig_position_vs_root(rec, fig) is None
+    x_tool = fig.axes[0].get_lines()[0].get_xydata()
+    assert len(x_tool) == 200                              # the treatment rows only
+    assert x_tool[0, 0] == pytest.approx(100 / 500)        # first row after calibration
+    z_tool = fig.axes[2].get_lines()[0].get_ydata()
+    assert z_tool.min() == pytest.approx(-0.01 * 199)      # 2 mm of treatment, from 0
+    fig = Figure()
+    assert _fig_force_vs_position(rec, fig) is None
+    names = [ln.get_label() for ln in fig.axes[0].get_lines()]
+    assert "calibrating.load" not in names
+
+
+def test_force_scatters_get_one_colour_per_phase(recording):
+    from matplotlib.figure import Figure
+
+    from dentibot.telemetry.plots import _fig_force_vs_position, _fig_force_vs_velocity
+    from dentibot.telemetry.reader import read_recording
+
+    rec = read_recording(recording)
+    for draw in (_fig_force_vs_position, _fig_force_vs_velocity):
+        fig = Figure()
+        assert draw(rec, fig) is None
+        lines = fig.axes[0].get_lines()
+        # ramp_row alternates feeding / pausing every 25 rows: both are treating.drilling
+        assert [ln.get_label() for ln in lines] == ["treating.drilling"]
+        assert len(lines[0].get_xdata()) == 300
+
+
+def test_state_labels_never_overlap(tmp_path):
+    """Bands of 1, 3 and 60 ticks with long names: the labels written do not overlap."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from dentibot.telemetry.plots import FIGURES, _fig_state_timeline
+    from dentibot.telemetry.reader import read_recording
+
+    path = tmp_path / "bands.mcap"
+    lengths = [1, 3, 60, 2, 1, 40, 5, 1, 200] * 3
+    states = ["treating.drilling.feeding", "treating.drilling.reversing",
+              "treating.retracting", "self_aligning"]
+    with McapRecorder(path, {"rate_hz": 500}) as rec:
+        i = 0
+        for k, n in enumerate(lengths):
+            for _ in range(n):
+                rec.record(ramp_row(i, state=states[k % len(states)], step=f"{k % 3}:step"))
+                i += 1
+    size, _draw = FIGURES["state_timeline"]
+    fig = Figure(figsize=size)
+    canvas = FigureCanvasAgg(fig)
+    assert _fig_state_timeline(read_recording(path), fig) is None
+    fig.tight_layout()
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    ax = fig.axes[0]
+    texts = [t for t in ax.texts if t.get_visible()]
+    assert texts                                           # the wide bands are labelled
+    boxes = {0: [], 1: []}
+    for t in texts:
+        boxes[round(t.get_position()[1])].append(t.get_window_extent(renderer))
+    for row in boxes.values():
+        row.sort(key=lambda b: b.x0)
+        for a, b in zip(row, row[1:]):
+            assert a.x1 <= b.x0, "two state labels overlap"
