@@ -70,3 +70,9 @@ def pytest_collection_modifyitems(items):
         fn = getattr(item, "function", None)
         if fn is not None and inspect.iscoroutinefunction(fn):
             item.fixturenames.insert(0, "_no_leaked_tasks")   # torn down last
+
+
+@pytest.fixture(autouse=True)
+def _no_devices_from_the_environment(monkeypatch):
+    """A developer's ``DENTIBOT_DEVICES`` must never send a test's run to their hardware."""
+    monkeypatch.delenv("DENTIBOT_DEVICES", raising=False)

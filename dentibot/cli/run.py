@@ -17,7 +17,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from dentibot.cli.common import user_errors
-from dentibot.io.devices import load_devices_config
+from dentibot.cli.devices_option import add_devices_options, devices_from_args
 from dentibot.protocol.loader import load_protocol
 from dentibot.app.runner import EXIT_CODES, ProtocolRunner, step_duration_s
 from dentibot.telemetry import summary_table
@@ -39,7 +39,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     protocol = load_protocol(args.protocol)          # bad input: raises before anything runs
-    devices = load_devices_config(args.devices) if args.devices else None
+    devices = devices_from_args(args, "run")
     out = sys.stderr if args.json else sys.stdout
     console = Console(file=out)
     progress = Progress(TextColumn("{task.description:<16}"), BarColumn(bar_width=24),
@@ -96,7 +96,6 @@ def add_parser(sub) -> None:
                           "8765)")
     run.add_argument("--force", action="store_true",
                      help="replace the recording file if it exists (refused otherwise)")
-    run.add_argument("--devices", help="device configuration YAML (wire simulators of "
-                     "'dentibot sim serve' or hardware); default: the built-in simulator")
+    add_devices_options(run)
     run.add_argument("--quiet", action="store_true", help="no progress display")
     run.set_defaults(func=cmd_run)

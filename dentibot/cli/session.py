@@ -14,7 +14,7 @@ import asyncio
 import sys
 
 from dentibot.cli.common import user_errors
-from dentibot.io.devices import load_devices_config
+from dentibot.cli.devices_option import add_devices_options, devices_from_args
 from dentibot.protocol.loader import load_protocol
 
 
@@ -27,7 +27,7 @@ def _session(args: argparse.Namespace) -> int:
     from dentibot.session.controller import SessionController, SessionOptions
 
     protocol = load_protocol(args.protocol) if args.protocol else None   # bad input: exit 2
-    devices = load_devices_config(args.devices) if args.devices else None
+    devices = devices_from_args(args, "session")
     ctl = SessionController(SessionOptions(protocol=protocol, devices=devices, clock=args.clock,
                                            calibrated=args.calibrated))
     app = SessionApp(ctl, refresh_hz=args.refresh_hz, startup=tuple(args.startup))
@@ -50,8 +50,7 @@ def _session(args: argparse.Namespace) -> int:
 def add_parser(sub) -> None:
     s = sub.add_parser("session", help="interactive session: connect, calibrate, drag, align, "
                        "drill, pause, retract ... step by step")
-    s.add_argument("--devices", help="device configuration YAML (wire simulators of 'dentibot "
-                   "sim serve' or hardware); default: the built-in simulator")
+    add_devices_options(s)
     s.add_argument("--protocol", help="protocol whose phantom, tool, limits and steps the "
                    "session uses ('step N' runs its step N); default: the schema's defaults")
     s.add_argument("--clock", choices=["realtime", "lockstep"], default="realtime",

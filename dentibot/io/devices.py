@@ -16,13 +16,15 @@ home, velocity timeout as the dead-man). A failure closes what was opened, then 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import AsyncIterator
+import os
+from collections.abc import AsyncIterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 from pydantic import Field
 
+from dentibot.errors import ConfigError
 from dentibot.io.aux_modbus import AuxModbusDriver
 from dentibot.io.epos4 import (
     DEFAULT_CONSUMER_MS,
@@ -155,6 +157,55 @@ def load_devices_config(path: str | Path) -> DevicesConfig:
     """Read and validate a device configuration file; raises :class:`DevicesFileError`
     (file, line, field, value, limit) before anything connects."""
     return load(path, DevicesConfig, DevicesFileError)
+
+
+#: Environment variable naming the device configuration file.
+DEVICES_ENV = "DENTIBOT_DEVICES"
+#: File name looked for in the working directory and in the user's configuration directory.
+DEVICES_FILE_NAME = "devices.yaml"
+
+
+def devices_search_path(env: Mapping[str, str], cwd: Path) -> list[tuple[Path, str]]:
+    """Where a device configuration is looked for, in order, each with how it was found:
+    ``$DENTIBOT_DEVICES``, ``./devices.yaml``, ``$XDG_CONFIG_HOME/dentibot/devices.yaml``
+    (``~/.config`` when ``XDG_CONFIG_HOME`` is unset, as the XDG base-directory rules say)."""
+    out: list[tuple[Path, str]] = []
+    if env.get(DEVICES_ENV):
+        out.append((Path(env[DEVICES_ENV]).expanduser(), f"${DEVICES_ENV}"))
+    out.append((cwd / DEVICES_FILE_NAME, "the working directory"))
+    home = env.get("HOME")
+    config_home = env.get("XDG_CONFIG_HOME") or (str(Path(home) / ".config") if home else None)
+    if config_home:
+        out.append((Path(config_home) / "dentibot" / DEVICES_FILE_NAME,
+                     "the user's configuration directory"))
+    return out
+
+
+def find_devices_file(requested: str | None, *, env: Mapping[str, str] | None = None,
+                      cwd: Path | None = None) -> tuple[Path, str] | None:
+    """The device configuration a command uses, and how it was chosen; None for the built-in
+    simulator.
+
+    ``requested`` is ``--devices``'s value: a path (used as given), ``""`` for a bare
+    ``--devices`` (the first file of :func:`devices_search_path` that exists; none is an
+    error naming the places looked at), or None. With None only ``$DENTIBOT_DEVICES`` is
+    taken: a ``devices.yaml`` lying in a directory never sends a run to hardware unasked.
+    """
+    env = os.environ if env is None else env
+    cwd = Path.cwd() if cwd is None else cwd
+    if requested:
+        return Path(requested), "--devices"
+    if requested is None:
+        value = env.get(DEVICES_ENV)
+        return (Path(value).expanduser(), f"${DEVICES_ENV}") if value else None
+    places = devices_search_path(env, cwd)
+    for path, how in places:
+        if path.is_file():
+            return path, how
+    looked = "; ".join(str(p) for p, _ in places)
+    raise ConfigError("--devices", "", f"a device configuration file; none found at {looked}",
+                      f"write one with 'dentibot sim serve --write-devices "
+                      f"{DEVICES_FILE_NAME}', or name the file")
 
 
 @dataclass
