@@ -272,7 +272,7 @@ class ProtocolRunner:
                         if self.devices is None else
                         {"arm": "meca500", "ft": "netft", "handpiece": "epos4",
                          "aux": "modbus" if self.devices.aux else "none"}),
-            "file_torque_limit_mnm": p.file.torsional_strength_mnm,
+            "file_strength_mnm": p.file.torsional_strength_mnm,
             # what is enforced: the runtime's limit, and the drive's current limit's torque
             "torque_limit_mnm": th.torque_limit_mnm, "drive_limit_mnm": th.drive_limit_mnm,
             **({"tau_d_mnm": drills[0].tau_d_mnm} if drills else {})}

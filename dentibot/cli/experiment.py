@@ -25,7 +25,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
+from dentibot.control.feedrate import FILE_STRENGTH_MNM
 from dentibot.experiments import alignment as al
 from dentibot.experiments import preclinical as pc
 from dentibot.experiments.common import default_workers, run_all
@@ -323,7 +323,7 @@ def _numbers(text: str, what: str, hi: float) -> tuple[float, ...]:
 
 
 def _torque_limit(text: str) -> float:
-    v = _numbers(text, "mNm", FILE_TORQUE_LIMIT_MNM)
+    v = _numbers(text, "mNm", FILE_STRENGTH_MNM)
     if len(v) != 1:
         raise argparse.ArgumentTypeError(f"{text!r}: one number of mNm")
     return v[0]
@@ -422,9 +422,9 @@ def cmd_preclinical(args: argparse.Namespace) -> int:
 
 def _limit_text(spec: pc.PreclinicalSpec) -> str:
     limit = pc.torque_limit_of(spec)
-    if limit >= FILE_TORQUE_LIMIT_MNM:
+    if limit >= FILE_STRENGTH_MNM:
         return f"{limit:g} mNm (at the strength: off in effect)"
-    return f"{limit:.1f} mNm ({100 * limit / FILE_TORQUE_LIMIT_MNM:.0f} % of the strength)"
+    return f"{limit:.1f} mNm ({100 * limit / FILE_STRENGTH_MNM:.0f} % of the strength)"
 
 
 def _strategy_table(by: dict[str, list[pc.PhantomRun]]) -> Table:

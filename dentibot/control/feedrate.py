@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from dentibot.errors import ConfigError
 
 #: Torsional strength of a NiTi file (thesis eq 5.5, ref [37]): 6.20 Ncm.
-FILE_TORQUE_LIMIT_MNM = 62.0
+FILE_STRENGTH_MNM = 62.0
 #: Handpiece motor: gear ratio and torque constant (thesis 5.1).
 GEAR_RATIO = 67.0
 KM_MNM_PER_A = 16.0
@@ -47,7 +47,7 @@ def file_torque_estimate_mnm(current_a: float, velocity_rpm: float, efficiency: 
                                     km_mnm_per_a, gear_ratio)
 
 
-def current_limit_a(torque_limit_mnm: float = FILE_TORQUE_LIMIT_MNM, efficiency: float = 1.0,
+def current_limit_a(torque_limit_mnm: float = FILE_STRENGTH_MNM, efficiency: float = 1.0,
                     km_mnm_per_a: float = KM_MNM_PER_A, gear_ratio: float = GEAR_RATIO) -> float:
     """Motor current (A) at which the file reaches ``torque_limit_mnm`` (eq 5.6)."""
     return torque_limit_mnm / (km_mnm_per_a * gear_ratio * efficiency)
@@ -66,9 +66,9 @@ class FeedrateParams:
     reversal_threshold_n: float = -0.2
 
     def __post_init__(self) -> None:
-        if not 0.0 < self.tau_d_mnm < FILE_TORQUE_LIMIT_MNM:
+        if not 0.0 < self.tau_d_mnm < FILE_STRENGTH_MNM:
             raise ConfigError("feedrate.tau_d_mnm", self.tau_d_mnm,
-                              f"0 < tau_d < {FILE_TORQUE_LIMIT_MNM} mNm (the file's strength)")
+                              f"0 < tau_d < {FILE_STRENGTH_MNM} mNm (the file's strength)")
         if not self.kp_n_per_mnm > 0.0:
             raise ConfigError("feedrate.kp_n_per_mnm", self.kp_n_per_mnm, "> 0")
         if self.kd_n_s_per_mnm < 0.0:

@@ -25,7 +25,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
+from dentibot.control.feedrate import FILE_STRENGTH_MNM
 from dentibot.experiments import alignment as al
 from dentibot.experiments import preclinical as pc
 
@@ -165,9 +165,9 @@ def preclinical_figures(runs: list[pc.PhantomRun], out_dir: str | Path) -> list[
             ax2 = ax.twinx()
             ax2.plot(tr["t"], tr["torque"], "k-", linewidth=0.5, alpha=0.7)
             ax2.axhline(r.spec.phantom.tau_d_mnm, color="g", linestyle="--", linewidth=0.8)
-            ax2.axhline(FILE_TORQUE_LIMIT_MNM, color="r", linestyle="--", linewidth=0.8)
+            ax2.axhline(FILE_STRENGTH_MNM, color="r", linestyle="--", linewidth=0.8)
             ax2.set_ylabel("torque (mNm)")
-            ax2.set_ylim(-20, FILE_TORQUE_LIMIT_MNM + 8)
+            ax2.set_ylim(-20, FILE_STRENGTH_MNM + 8)
         axes[-1, 0].set_xlabel("t (s)")
         fig.suptitle("Experiment 2: tip depth (blue; working length dotted) and file torque "
                      "(black; tau_d green, 62 mNm red)")

@@ -40,7 +40,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
+from dentibot.control.feedrate import FILE_STRENGTH_MNM
 from dentibot.experiments.common import Check, distribution, run_protocol
 from dentibot.protocol.schema import LimitsSpec, Protocol
 
@@ -337,7 +337,7 @@ def default_torque_limit(strategy: str) -> float | None:
     """The runtime's hard torque limit for a strategy's runs: the protocol default (90 % of
     the file's strength) for the automated algorithm; the strength itself for an ablation, so
     that what protects the file (or fails to) is the strategy, not the runtime's net."""
-    return None if strategy == "automated" else FILE_TORQUE_LIMIT_MNM
+    return None if strategy == "automated" else FILE_STRENGTH_MNM
 
 
 def torque_limit_of(spec: PreclinicalSpec) -> float:
@@ -412,5 +412,5 @@ def checks(runs: list[PhantomRun]) -> list[Check]:
     out.append(Check("no file fracture", n == 0,
                      f"{n} of {len(runs)} runs fractured; peak file torque "
                      f"{max(r.peak_torque_mnm for r in runs):.1f} mNm "
-                     f"(strength {FILE_TORQUE_LIMIT_MNM:g} mNm)"))
+                     f"(strength {FILE_STRENGTH_MNM:g} mNm)"))
     return out

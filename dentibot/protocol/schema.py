@@ -25,7 +25,7 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, Field, model_validator
 
-from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
+from dentibot.control.feedrate import FILE_STRENGTH_MNM
 from dentibot.yamlfile import StrictModel
 
 #: A tool point in the flange or handpiece frame (mm): beyond 250 mm it is not a handpiece
@@ -84,7 +84,7 @@ class FileSpec(Strict):
     taper: float = Field(0.06, gt=0.0, le=0.12, description="taper (mm per mm)")
     length_mm: Literal[21, 25, 28, 31] = Field(25, description="total length (mm)")
     torsional_strength_mnm: MilliNm = Field(
-        FILE_TORQUE_LIMIT_MNM, gt=0.0, le=200.0,
+        FILE_STRENGTH_MNM, gt=0.0, le=200.0,
         description="torque at which the file fractures (mNm); thesis 62 mNm")
 
 
@@ -168,7 +168,7 @@ class StalePeriods(Strict):
 
 class LimitsSpec(Strict):
     torque_limit_mnm: MilliNm = Field(
-        LIMIT_SHARE_OF_STRENGTH * FILE_TORQUE_LIMIT_MNM, gt=0.0, le=200.0,
+        LIMIT_SHARE_OF_STRENGTH * FILE_STRENGTH_MNM, gt=0.0, le=200.0,
         description="hard file-torque limit (mNm); at most 90 % of the file's strength")
     patient_moved_n: float = Field(1.5, ge=0.2, le=10.0,
                                    description="||f_H|| above which the patient moved (N)")

@@ -11,7 +11,7 @@ import math
 from dataclasses import dataclass, field
 
 from dentibot.control.admittance import AdmittanceParams
-from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM, FeedrateParams, file_torque_from_current
+from dentibot.control.feedrate import FILE_STRENGTH_MNM, FeedrateParams, file_torque_from_current
 from dentibot.errors import ConfigError
 from dentibot.states.strategies import StrategyParams
 from dentibot.runtime.supervisor import SupervisorLimits
@@ -81,9 +81,9 @@ class Thresholds:
     drift_window_s: float = 0.3
     drift_travel_mm: float = 2.0
     # the file's torsional strength (thesis eq 5.5: 62 mNm), from the protocol's file
-    file_strength_mnm: float = FILE_TORQUE_LIMIT_MNM
+    file_strength_mnm: float = FILE_STRENGTH_MNM
     # assumption: hard file-torque limit 90 % of the 62 mNm strength: stop and reverse.
-    torque_limit_mnm: float = 0.9 * FILE_TORQUE_LIMIT_MNM
+    torque_limit_mnm: float = 0.9 * FILE_STRENGTH_MNM
     # assumption: apical force cap 3 N along the file (retract above it).
     axial_force_limit_n: float = 3.0
     # assumption: past the working length by more than this (depth estimate) -> retract.

@@ -583,7 +583,7 @@ class SessionController:
                             if self.devices_cfg is None else
                             {"arm": "meca500", "ft": "netft", "handpiece": "epos4",
                              "aux": "modbus" if self.devices_cfg.aux else "none"}),
-                "file_torque_limit_mnm": p.file.torsional_strength_mnm}
+                "file_strength_mnm": p.file.torsional_strength_mnm}
         rt = self.runtime
         if rt is not None:
             # the rows' procedure time t is already running: the wall clock at t = 0, so that

@@ -12,7 +12,7 @@ from functools import cached_property
 
 import numpy as np
 
-from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
+from dentibot.control.feedrate import FILE_STRENGTH_MNM
 from dentibot.errors import ConfigError
 
 #: Working (fluted) part length (mm), ISO 3630-1 / thesis chapter 5.
@@ -48,7 +48,7 @@ class NiTiFile:
     taper: float = 0.06
     length_mm: float = 25.0
     # thesis eq 5.5 (ref [37]): 6.20 Ncm torsional strength.
-    torsional_strength_mnm: float = FILE_TORQUE_LIMIT_MNM
+    torsional_strength_mnm: float = FILE_STRENGTH_MNM
     youngs_modulus_mpa: float = NITI_E_MPA
 
     def __post_init__(self) -> None:

@@ -39,14 +39,14 @@ from matplotlib.patches import Patch
 
 from dentibot.telemetry.reader import Recording, read_recording
 
-__all__ = ["FIGURES", "FILE_TORQUE_LIMIT_MNM", "PlotSet", "plot_recording"]
+__all__ = ["FIGURES", "FILE_STRENGTH_MNM", "PlotSet", "plot_recording"]
 
 log = structlog.get_logger("dentibot.telemetry")
 
 # Torsional strength of the NiTi file (mNm): the same value as
-# dentibot.control.feedrate.FILE_TORQUE_LIMIT_MNM (telemetry does not import control);
-# the metadata key "file_torque_limit_mnm" overrides it.
-FILE_TORQUE_LIMIT_MNM = 62.0
+# dentibot.control.feedrate.FILE_STRENGTH_MNM (telemetry does not import control);
+# the metadata key "file_strength_mnm" overrides it.
+FILE_STRENGTH_MNM = 62.0
 
 _DPI = 100
 _LABEL_PT = 7
@@ -203,7 +203,9 @@ def _fig_torque_feed(rec: Recording, fig: Figure) -> str | None:
     ok = np.isfinite(t) & np.isfinite(tau)
     if ok.sum() < 2:
         return "no file torque in the recording"
-    strength = rec.metadata.get("file_torque_limit_mnm", FILE_TORQUE_LIMIT_MNM)
+    # older recordings named the strength "file_torque_limit_mnm"
+    strength = rec.metadata.get("file_strength_mnm",
+                                rec.metadata.get("file_torque_limit_mnm", FILE_STRENGTH_MNM))
     enforced = rec.metadata.get("torque_limit_mnm")
     tau_d = rec.metadata.get("tau_d_mnm")
     ax_tau, ax_f = fig.subplots(2, 1, sharex=True)

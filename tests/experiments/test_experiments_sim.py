@@ -9,7 +9,7 @@ import logging
 import pytest
 import structlog
 
-from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
+from dentibot.control.feedrate import FILE_STRENGTH_MNM
 from dentibot.experiments import alignment as al
 from dentibot.experiments import preclinical as pc
 from dentibot.experiments.common import run_all
@@ -80,7 +80,7 @@ def test_a_short_preparation_is_consistent_and_tau_d_50_feeds_faster():
         assert 0.0 < r.completeness < 1.0
         # eq 6.1 from the run's own red volumes
         assert r.completeness == pytest.approx(1.0 - r.red_after_mm2 / r.red_before_mm2)
-        assert r.peak_torque_mnm < FILE_TORQUE_LIMIT_MNM
+        assert r.peak_torque_mnm < FILE_STRENGTH_MNM
         assert r.trace is not None and r.trace["t"][-1] > 60.0
     assert r40.red_before_mm2 == pytest.approx(r50.red_before_mm2)
     assert r50.depth_max_mm > r40.depth_max_mm + 0.5

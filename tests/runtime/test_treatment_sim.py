@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from sim_runs import finished, harness, procedure
 
-from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
+from dentibot.control.feedrate import FILE_STRENGTH_MNM
 from dentibot.runtime.config import TreatmentPlan
 from dentibot.states.strategies import StrategyParams
 from dentibot.sim.canal import CanalParams
@@ -30,7 +30,7 @@ async def test_automated_algorithm_prepares_the_canal_to_working_length(name):
     assert rt.state == "done", rt.treatment.fault_causes
     assert not any(r["fractured"] for r in rows)
     peak = max(r["file_torque_mnm"] for r in rows)
-    assert peak < FILE_TORQUE_LIMIT_MNM
+    assert peak < FILE_STRENGTH_MNM
     # the true tip depth (simulator's geometry, not the runtime's estimate) reached the
     # working length, but not the canal bottom 0.5 mm beyond it
     deepest = max(r["true_depth_mm"] for r in rows)
@@ -344,7 +344,7 @@ async def test_an_axial_jerk_onto_the_file_does_not_break_it(mm_s):
     w.motion = MotionJerk(w.motion, w.t, tuple(-x for x in axis), mm=3.0, mm_s=mm_s)
     await h.run_for(ticks=500)
     assert w.fractured is None
-    assert max(abs(r["file_torque_mnm"]) for r in rows[k0:]) < FILE_TORQUE_LIMIT_MNM
+    assert max(abs(r["file_torque_mnm"]) for r in rows[k0:]) < FILE_STRENGTH_MNM
     # the drive's limit: (58.9 mNm + the no-load current's share) of motor current
     assert w.handpiece.current_limit_a == pytest.approx(58.9 / (16 * 67 * 0.7) + 0.005,
                                                          rel=1e-3)

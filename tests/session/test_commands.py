@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from dentibot.control.feedrate import FILE_TORQUE_LIMIT_MNM
+from dentibot.control.feedrate import FILE_STRENGTH_MNM
 from dentibot.protocol.loader import ProtocolFileError, parse_protocol
 from dentibot.session.commands import (
     COMMANDS,
@@ -60,7 +60,7 @@ def _loader_message(kind: str, field: str, value) -> str:
 
 
 @pytest.mark.parametrize("kind, field, value", [
-    ("drill", "tau_d_mnm", FILE_TORQUE_LIMIT_MNM + 18),   # above the file's 62 mNm strength
+    ("drill", "tau_d_mnm", FILE_STRENGTH_MNM + 18),   # above the file's 62 mNm strength
     ("drill", "tau_d_mnm", 0.05),                          # N m for mNm
     ("drill", "strategy", "fastest"),
     ("drag", "duration_s", -1),

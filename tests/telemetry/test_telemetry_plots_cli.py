@@ -101,7 +101,7 @@ def test_the_torque_figure_shows_the_limit_in_force_beside_the_files_strength(tm
     from dentibot.telemetry.reader import read_recording
 
     path = tmp_path / "limits.mcap"
-    meta = {"protocol": "demo", "rate_hz": 500, "file_torque_limit_mnm": 62.0,
+    meta = {"protocol": "demo", "rate_hz": 500, "file_strength_mnm": 62.0,
             "torque_limit_mnm": 55.8, "tau_d_mnm": 40.0}
     with McapRecorder(path, meta) as rec:
         for i in range(50):
