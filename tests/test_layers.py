@@ -35,6 +35,8 @@ MAY_IMPORT: dict[str, set[str]] = {
     "trials": _BELOW_APP | {"app"},
     "testing": _BELOW_APP | {"app"},
     "cli": _BELOW_APP | {"app", "sim", "session", "experiments", "trials"},
+    # the Python API for notebooks and scripts: the same reach as the command line
+    "api": _BELOW_APP | {"app", "sim", "experiments", "cli"},
 }
 
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from dentibot.control.admittance import AdmittanceParams
 from dentibot.control.feedrate import FILE_STRENGTH_MNM, FeedrateParams, file_torque_from_current
 from dentibot.errors import ConfigError
+from dentibot.protocol.schema import StalePeriods
 from dentibot.states.strategies import StrategyParams
 from dentibot.runtime.supervisor import SupervisorLimits
 
@@ -93,9 +94,8 @@ class Thresholds:
     # file meets it), so its bound is 1.0 mm past the working length -> fault.
     align_depth_margin_mm: float = 1.0
     supervisor: SupervisorLimits = field(default_factory=SupervisorLimits)
-    # Freshness bound per stream, in control periods (stale -> fault).
-    stale_periods: dict = field(default_factory=lambda: {
-        "arm": 10, "ft": 5, "motor": 10, "aux": 50})
+    # Freshness bound per stream, in control periods (stale -> fault); defaults: the schema's.
+    stale_periods: dict = field(default_factory=lambda: StalePeriods().model_dump())
 
     def __post_init__(self) -> None:
         _check("limits.patient_moved_n", self.patient_moved_n, 0.2, 10.0, "N")
