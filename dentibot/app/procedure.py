@@ -249,8 +249,9 @@ class Procedure:
         await self.call(lambda: rt.estop(cause))
 
     async def safe_stop(self) -> None:
-        """End the treatment, withdraw the file where possible (the machine's retraction),
-        stop, and record the file and the arm coming to rest; the devices are stopped in any
+        """End the treatment, withdraw the file where possible (the machine's retraction,
+        from any state in which the file is in the canal: treating, or a stop, drag or
+        alignment that left it there), stop, and record the file and the arm coming to rest; the devices are stopped in any
         case. Never raises."""
         rt = self.runtime
 
@@ -259,7 +260,8 @@ class Procedure:
 
         try:
             await self.call(end_treatment)
-            if rt.treatment.in_state("treating") and rt.state != "treating.retracting":
+            in_canal = rt.treatment.in_state("treating") or rt.treatment.depth_known
+            if in_canal and rt.state not in ("treating.retracting", "fault"):
                 await self.command("retract")
             if rt.state == "treating.retracting":
                 await self.run_for(RETRACT_TIMEOUT_S,

@@ -60,12 +60,14 @@ def feed_force_n(mode, ctx: Context, plan) -> float:
 
 def set_depth_reference(ctx: Context, rt, est) -> None:
     """Depth 0 is the canal orifice, ``orifice_gap_mm`` ahead of the tip along the tool axis
-    when the file first goes in (kept until the procedure goes back to idle or dragging)."""
+    when the file first goes in. It is kept for the file's whole stay in the canal, whatever
+    brings it back (idle, dragging, another alignment): see :class:`Free`."""
     if ctx.depth_ref is None and est is not None:
         gap = rt.cfg.plan.orifice_gap_mm
         a = est.axis_0
         ctx.depth_ref = (tuple(est.tip_0[i] + gap * a[i] for i in range(3)), a)
         est.depth_mm = -gap
+        rt.treatment.depth_known = True
 
 
 class Behaviour:
@@ -100,10 +102,27 @@ class Behaviour:
 
 
 class Free(Behaviour):
-    """Idle and dragging: no depth reference (the next insertion sets a new one)."""
+    """Idle and dragging. The depth reference stays while the file is in the canal (depth
+    above ``retract_to_mm``): an operator who stops, drags and aligns again with the file
+    inside keeps counting depth from the same orifice, so the working length still holds
+    and a retraction still withdraws the file. Once the file is out (or no depth is known)
+    the reference goes, and the next insertion sets a new one."""
 
     def enter(self, ctx, rt, est, prev):
-        ctx.depth_ref = None
+        self._drop_when_out(ctx, rt, est)
+
+    def events(self, ctx, rt, est):
+        self._drop_when_out(ctx, rt, est)
+        return []
+
+    @staticmethod
+    def _drop_when_out(ctx, rt, est) -> None:
+        if ctx.depth_ref is None:
+            return
+        depth = None if est is None else est.depth_mm
+        if depth is None or depth <= rt.cfg.plan.retract_to_mm:
+            ctx.depth_ref = None
+            rt.treatment.depth_known = False
 
 
 class SelfAligning(Behaviour):

@@ -81,6 +81,9 @@ TRANSITIONS = [
     ("depth_limit", "treating.drilling", "treating.retracting", {}),
     ("retract", ["treating.drilling", "treating.patient_moved", "treating.paused"],
      "treating.retracting", {}),
+    # a file left in the canal by a stop, a drag or an alignment is withdrawn the same way
+    ("retract", ["idle", "dragging", "self_aligning", "done"], "treating.retracting",
+     {"conditions": "in_canal"}),
     ("retracted", "treating.retracting", "treating.drilling", {"conditions": "more_passes"}),
     ("retracted", "treating.retracting", "done", {}),
     ("stop", ["calibrating", "dragging", "self_aligning", "treating", "done"], "idle", {}),
@@ -93,6 +96,7 @@ NEEDS = {
     "calibrated": "a load calibration (calibrate load) or a gravity model given in the config",
     "reset_allowed": "the emergency stop released and the fault's cause cleared",
     "more_passes": "",
+    "in_canal": "the file in the canal (a depth reference, set when the file went in)",
 }
 
 #: Events that cannot be refused by the state (only recorded) when they arrive in ``fault``.
@@ -119,12 +123,14 @@ class Treatment:
         gravity_known: a gravity/offset model exists (load calibration or configuration).
         estop_active: the emergency stop is pressed (reset is refused while it is).
         passes_left: further drilling passes after this one (protocol rounds).
+        depth_known: a depth reference is held: the file went in and has not come out.
         fault_causes: why the machine is in ``fault`` (latched, cleared on reset).
     """
 
     gravity_known: bool = False
     estop_active: bool = False
     passes_left: int = 0
+    depth_known: bool = False
     fault_causes: list[str] = field(default_factory=list)
     history: list[tuple[str, str, str]] = field(default_factory=list)  # (trigger, src, dst)
     state: str = "idle"
@@ -146,6 +152,9 @@ class Treatment:
 
     def reset_allowed(self, event) -> bool:
         return not self.estop_active
+
+    def in_canal(self, event) -> bool:
+        return self.depth_known
 
     def more_passes(self, event) -> bool:
         if self.passes_left > 0:

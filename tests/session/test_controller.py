@@ -276,3 +276,60 @@ async def test_devices_over_the_wire_connect_refuse_estop_and_close_everything()
         finally:
             r = await c.shutdown()
         assert "devices closed" in r.text and c.closed
+
+
+# ------------------------------------------------------------------ depth reference
+def _depths(c) -> tuple[float, float]:
+    """(estimated depth, the simulator's true depth) of the last tick, mm."""
+    row = c.runtime.last_row
+    return row["depth_mm"], row["true_depth_mm"]
+
+
+async def test_depth_counts_from_the_same_orifice_after_a_stop_a_drag_and_a_new_alignment(
+        stepped):
+    """The file goes 3 mm in, the operator stops, drags (without moving it) and aligns again:
+    the depth still reads the file's depth in the canal (the simulator's truth is the check),
+    and a retraction withdraws the file out of the canal, not to where the second alignment
+    began."""
+    c = stepped
+    c.opt.calibrated = True
+    await say(c, "connect")
+    await say(c, "align")
+    await c.advance(20.0, until=lambda r: (r.last_row or {}).get("depth_mm") is not None
+                    and r.last_row["depth_mm"] > 3.0)
+    est0, true0 = _depths(c)
+    assert est0 > 3.0 and true0 > 2.5
+    assert (await say(c, "stop")).kind == "ok"
+    await c.advance(ticks=10)
+    assert c.state == "idle"
+    assert (await say(c, "drag")).kind == "ok"
+    await c.advance(ticks=50)
+    assert (await say(c, "align")).kind == "ok"
+    await c.advance(ticks=5)
+    est, true = _depths(c)
+    # one orifice for the whole stay: the estimate still tracks the truth (within the
+    # estimate's own offset measured before the stop), not -orifice_gap from a new start
+    assert est == pytest.approx(true + (est0 - true0), abs=0.3)
+    assert (await say(c, "retract")).kind == "ok"
+    await c.advance(30.0, until=lambda r: r.state in ("done", "idle"))
+    assert _depths(c)[1] <= 0.0                         # out of the canal, by the truth
+    await say(c, "quit")
+
+
+async def test_esc_during_alignment_withdraws_a_file_that_is_in_the_canal(stepped):
+    """Esc (stop safely) in self-alignment with the file 3 mm in: the file comes out of the
+    canal (the simulator's truth), it is not left where it was."""
+    c = stepped
+    c.opt.calibrated = True
+    await say(c, "connect")
+    await say(c, "align")
+    await c.advance(20.0, until=lambda r: (r.last_row or {}).get("depth_mm") is not None
+                    and r.last_row["depth_mm"] > 3.0)
+    assert _depths(c)[1] > 2.5
+    c.procedure.clock.release()                 # the safe stop takes the ticks it needs
+    reply = await asyncio.wait_for(c.safe_stop(), 60.0)
+    assert reply.kind == "ok"
+    assert c.state == "idle"
+    assert _depths(c)[1] <= 0.0                 # out, by the truth
+    assert ("retract", "self_aligning", "treating.retracting") in c.runtime.treatment.history
+    await say(c, "quit")
