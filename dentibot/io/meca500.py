@@ -28,7 +28,12 @@ A dropped link makes ``read()`` raise until ``reconnect()``. The robot pauses mo
 control connection drops; ``reconnect()`` re-reads the status and, if paused, leaves it so:
 ``paused`` is True and motion commands raise until an explicit ``resume_motion()``.
 
-Connection watchdog (devices.md: ``ConnectionWatchdog(t)`` answered [2177]): ``connect()``
+End of a run and the next one: ``close()`` parks an activated arm (ClearMotion, then
+DeactivateRobot), so the next connection activates and homes a robot with nothing paused.
+An arm found paused or in error at connection (the previous run did not park it) is resumed
+only on the operator's request, by ``resume()``, which refuses to reset an error blindly.
+
+Connection watchdog (``ConnectionWatchdog(t)`` answered [2177]): ``connect()``
 arms it with ``connection_watchdog_s`` and waits for [2177][1]; a robot that does not know the
 command fails the connection. Mecademic documents what the robot then does (mecademicpy,
 ``Robot.ConnectionWatchdog``): unless the watchdog is refreshed by another
@@ -91,8 +96,13 @@ from dentibot.io.meca500_protocol import (
 
 log = structlog.get_logger(__name__)
 
-#: Checkpoint ids the driver uses (mecademicpy's 1..8000, inside devices.md's 1..8191).
+#: Checkpoint ids the driver uses (mecademicpy's 1..8000, inside the programming manual's 1..8191).
 CHECKPOINT_IDS = (1, 8000)
+#: Errors ``resume(reset_error=True)`` may reset: refusals of a commanded motion (joint over
+#: limit, singularity, destination out of reach), which leave the arm stopped and intact.
+#: Everything else (activation or homing failure, motion error / collision, hardware) needs
+#: the arm looked at first.
+RESETTABLE_ERRORS = frozenset({1007, 1012, 1016})
 _LOG_FIRST, _LOG_EVERY = 10, 1000
 
 
@@ -335,6 +345,9 @@ class Meca500Driver:
         stage[0] = f"monitoring connection on port {self.monitor_port}"
         _, self._mon = await loop.create_connection(lambda: _Link(self, "monitor"),
                                                     self.host, self.monitor_port)
+        # an empty command announces a plain TCP client (not a WebSocket), as the vendor's
+        # client does: the robot then greets and streams at once
+        self._mon.transport.write(b"\0")
         stage[0] = "answers setting up the monitoring"
         self._send("SetMonitoringInterval", self.monitoring_interval_s, check=False)
         self.realtime_codes = ()
@@ -365,7 +378,7 @@ class Meca500Driver:
             self._remove_waiter(first)
         if self.paused:
             log.warning("meca500.paused", reason="robot reports motion paused at connection",
-                        hint="call resume_motion() when it is safe")
+                        hint="call resume() on the operator's request when it is safe")
         log.info("meca500.connected", host=self.host, firmware=self.firmware,
                  status=st, realtime=self.realtime_codes, interval_s=interval[0])
 
@@ -381,9 +394,27 @@ class Meca500Driver:
         await self.connect()
         self.reconnects += 1
 
-    async def close(self) -> None:
-        """Close both connections (idempotent). The robot pauses its motion when the control
-        connection closes."""
+    async def close(self, *, deactivate: bool = True) -> None:
+        """Close both connections (idempotent).
+
+        With ``deactivate`` (the end of a run), an activated arm is parked first: ClearMotion
+        (the arm stops, the queue is emptied) then DeactivateRobot (brakes on), each bounded
+        by ``response_timeout_s``. The robot pauses motion when its control connection drops
+        and keeps that pause across connections; a deactivated robot has nothing to resume,
+        and the next run's ``activate()`` / ``home()`` start from a clean state (manual:
+        the motion-queue settings return to their defaults at every activation). An arm in
+        error is deactivated too; the error stays for the next connection to report
+        (``resume(reset_error=True)`` decides about it). Failures here are logged, never
+        raised: the connections are closed whatever the robot answers.
+        """
+        if deactivate and self.connected and self.activated:
+            try:
+                await self._request("ClearMotion", check=False)
+                await self._request("DeactivateRobot", check=False)
+                await self.get_status()
+            except DeviceFault as exc:
+                log.warning("meca500.park_failed", error=str(exc),
+                            hint="the robot keeps motion paused; resume() at next connection")
         await self._teardown("closed")
 
     async def __aenter__(self) -> Self:
@@ -633,6 +664,58 @@ class Meca500Driver:
         await self._request("ResumeMotion")
         await self.get_status()
 
+    async def resume(self, *, reset_error: bool = False) -> None:
+        """Operator-requested resume of an arm found paused or in error at connection (a run
+        that ended without parking the arm, a dropped link, an expired connection watchdog).
+
+        Reads the status, then:
+
+        - not activated or not homed: nothing to resume; raises (call ``activate()`` and
+          ``home()``);
+        - in error (es=1): raises unless ``reset_error``; with it, resets only an error whose
+          cause this connection received and which a reset may clear
+          (:data:`RESETTABLE_ERRORS`: joint limit, singularity, pose out of reach). An error
+          that was raised before this connection is refused: the robot's status word says
+          *that* it is in error, not *why* (firmware 9.x), so resetting it would be blind
+          to a collision, an overload or a hardware fault. Such an error is read and reset
+          at the robot (its web interface);
+        - paused: ClearMotion first (nothing queued before the pause may run on), then
+          ResumeMotion; the arm stays at rest until the next motion command.
+
+        Raises :class:`DeviceFault` saying why when it refuses; the robot's state is then
+        unchanged.
+        """
+        self._check_link()
+        st = await self.get_status()
+        if not (st.activated and st.homed):
+            raise DeviceFault(DEVICE, "resume refused: the robot is not activated and homed "
+                                      "(nothing to resume); call activate() and home()")
+        if st.error:
+            code = self.error_code
+            if not reset_error:
+                what = describe_code(code) if code else "cause not reported"
+                raise DeviceFault(DEVICE, f"resume refused: the robot is in error ({what}); "
+                                          f"resume(reset_error=True) resets it only if it is "
+                                          f"one of {sorted(RESETTABLE_ERRORS)}")
+            if not code:
+                raise DeviceFault(DEVICE, "resume refused: the robot was in error before this "
+                                          "connection and its status does not say which "
+                                          "error (firmware 9.x); a blind reset could hide a "
+                                          "collision, an overload or a hardware fault. Read "
+                                          "and reset the error at the robot (web interface)")
+            if code not in RESETTABLE_ERRORS:
+                raise DeviceFault(DEVICE, f"resume refused: {describe_code(code)} is not "
+                                          f"cleared remotely; it needs the arm inspected and "
+                                          f"the error reset at the robot")
+            await self.reset_error()
+        self._refusal = None
+        if self.status is not None and self.status.paused:
+            await self._request("ClearMotion", check=False)
+            await self._request("ResumeMotion")
+        st = await self.get_status()
+        if st.error or st.paused:
+            raise DeviceFault(DEVICE, f"resume failed: status after ResumeMotion {st}")
+
     async def recover(self) -> None:
         """After a fault, on the operator's reset: reconnect a dropped link, reset a latched
         error, resume motion (the stop cleared the queue: nothing moves until commanded)."""
@@ -729,8 +812,10 @@ class Meca500Driver:
         if (fault := self.fault) is not None:
             raise DeviceFault(DEVICE, fault)
         if self.paused:
-            raise DeviceFault(DEVICE, "motion is paused (PauseMotion, ClearMotion or a dropped "
-                                      "link); call resume_motion() when it is safe")
+            raise DeviceFault(DEVICE, "motion is paused (PauseMotion, ClearMotion, a dropped "
+                                      "link or an expired connection watchdog); on the "
+                                      "operator's request call resume() (or resume_motion()) "
+                                      "when it is safe")
 
     @staticmethod
     def _vec6(field: str, values) -> tuple[float, ...]:

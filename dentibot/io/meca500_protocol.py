@@ -45,22 +45,22 @@ GREETING = "Connected to Meca500 R3 v9.3.0"
 ANOTHER_USER = "Another user is already connected, closing connection."
 
 # ---------------------------------------------------------------------------------- limits
-#: Joint ranges (deg), J1..J6 (devices.md; Meca500 R3 user manual).
+#: Joint ranges (deg), J1..J6 (Meca500 R3 user manual).
 JOINT_LIMITS_DEG: tuple[tuple[float, float], ...] = (
     (-175.0, 175.0), (-70.0, 90.0), (-135.0, 70.0), (-170.0, 170.0), (-115.0, 115.0),
     (-36000.0, 36000.0),
 )
-#: Maximum joint speeds (deg/s), J1..J6 (devices.md).
+#: Maximum joint speeds (deg/s), J1..J6 (Meca500 R3 user manual).
 JOINT_SPEED_LIMITS_DEG_S: tuple[float, ...] = (150.0, 150.0, 180.0, 300.0, 300.0, 500.0)
 #: SetVelTimeout argument range (s) and default, applied at every activation (manual).
 VEL_TIMEOUT_RANGE_S = (0.001, 1.0)
 VEL_TIMEOUT_DEFAULT_S = 0.05
-#: SetMonitoringInterval argument range (s): 1..1000 ms (devices.md). The argument is in
+#: SetMonitoringInterval argument range (s): 1..1000 ms (programming manual). The argument is in
 #: seconds (mecademicpy: "Monitoring interval duration in seconds").
 MONITORING_INTERVAL_RANGE_S = (0.001, 1.0)
-# assumption (devices.md: "default ~16.7 ms", unconfirmed): read it with GetMonitoringInterval.
+# assumption (a default of about 16.7 ms, unconfirmed): read it with GetMonitoringInterval.
 MONITORING_INTERVAL_DEFAULT_S = 1.0 / 60.0
-#: SetCheckpoint ids accepted (devices.md: up to 8191; mecademicpy allows 1..8000).
+#: SetCheckpoint ids accepted (programming manual: up to 8191; mecademicpy allows 1..8000).
 CHECKPOINT_ID_RANGE = (1, 8191)
 #: ConnectionWatchdog(t) timeouts the driver uses (s); 0 disables it. Mecademic documents
 #: "a non-zero value to enable or refresh" with no range; the bounds are this project's: below
@@ -136,13 +136,19 @@ RESPONSE_CODES: dict[int, CodeInfo] = {info.code: info for info in (
         (2116, "MONITORING_INTERVAL", "Monitoring interval (s)."),
         (2117, "REAL_TIME_MONITORING", "Enabled optional real-time monitoring codes."),
         (2177, "CONNECTION_WATCHDOG", "Connection watchdog enabled (1) or not (0)."),
+        (2084, "PRODUCT_TYPE", "Product type (robot model)."),
         (2200, "RT_TARGET_JOINT_POS", "t (us), target joint positions (deg)."),
         (2201, "RT_TARGET_CART_POS", "t (us), target pose (mm, deg)."),
         (2202, "RT_TARGET_JOINT_VEL", "t (us), target joint velocities (deg/s)."),
+        (2203, "RT_TARGET_JOINT_TORQ", "t (us), target joint torques (% of maximum)."),
+        (2204, "RT_TARGET_CART_VEL", "t (us), target TCP velocity in the WRF (mm/s, deg/s)."),
         (2210, "RT_JOINT_POS", "t (us), measured joint positions (deg)."),
         (2211, "RT_CART_POS", "t (us), measured pose (mm, deg)."),
         (2212, "RT_JOINT_VEL", "t (us), measured joint velocities (deg/s)."),
         (2213, "RT_JOINT_TORQ", "t (us), joint torques (% of maximum)."),
+        (2214, "RT_CART_VEL", "t (us), TCP velocity in the WRF (mm/s, deg/s)."),
+        (2228, "RT_WRF", "t (us), world reference frame in the BRF (mm, deg)."),
+        (2229, "RT_TRF", "t (us), tool reference frame in the FRF (mm, deg)."),
         (2230, "RT_CYCLE_END", "t (us): end of a monitoring cycle."),
     )),
     *_rows("status", (
@@ -156,6 +162,9 @@ RESPONSE_CODES: dict[int, CodeInfo] = {info.code: info for info in (
         (3026, "MAINTENANCE_CHECK", "Hardware problem detected; contact Mecademic support."),
         (3030, "CHECKPOINT_REACHED", "Checkpoint reached."),
         (3040, "CHECKPOINT_DISCARDED", "Checkpoint discarded (motion cleared or error)."),
+        # mecademicpy's MX_ST_SAFE_STOP_CONNECTION_DROPPED; payload 1 = active, 0 = cleared.
+        (3086, "SAFE_STOP_CONNECTION_DROPPED",
+         "Safety stop: connection dropped or connection watchdog expired."),
     )),
 )}
 
@@ -181,12 +190,20 @@ def kind_of(code: int) -> str:
 # ------------------------------------------------------------------------ real-time data
 #: Number of values after the timestamp for each real-time monitoring code.
 RT_VALUE_COUNTS: dict[int, int] = {
-    2200: 6, 2201: 6, 2202: 6, 2210: 6, 2211: 6, 2212: 6, 2213: 6, 2230: 0,
+    2200: 6, 2201: 6, 2202: 6, 2203: 6, 2204: 6, 2210: 6, 2211: 6, 2212: 6, 2213: 6, 2214: 6,
+    2228: 6, 2229: 6, 2230: 0,
 }
-#: Sent every cycle whatever SetRealTimeMonitoring says (devices.md).
+#: Sent every cycle whatever SetRealTimeMonitoring says (programming manual).
 RT_ALWAYS = (2200, 2201)
 #: May be enabled with SetRealTimeMonitoring (the subset of the robot's codes simulated here).
-RT_OPTIONAL = frozenset({2202, 2210, 2211, 2212, 2213})
+RT_OPTIONAL = frozenset({2202, 2203, 2204, 2210, 2211, 2212, 2213, 2214, 2228, 2229})
+#: Real-time queries (section "Real-time data request commands") -> the code they answer.
+RT_QUERIES: dict[str, int] = {
+    "GetRtTargetJointPos": 2200, "GetRtTargetCartPos": 2201, "GetRtTargetJointVel": 2202,
+    "GetRtTargetJointTorq": 2203, "GetRtTargetCartVel": 2204, "GetRtJointPos": 2210,
+    "GetRtCartPos": 2211, "GetRtJointVel": 2212, "GetRtJointTorq": 2213, "GetRtCartVel": 2214,
+    "GetRtWrf": 2228, "GetRtTrf": 2229,
+}
 RT_CYCLE_END = 2230
 
 
@@ -242,6 +259,26 @@ COMMANDS: dict[str, CommandSpec] = {spec.name.lower(): spec for spec in (
                 requires="homed"),
     CommandSpec("SetCheckpoint", (1, 1), answers=(3030,), errors=(*_MOTION_ERRORS, 1003, 3040),
                 queued=True, requires="homed"),
+    CommandSpec("GetProductType", answers=(2084,)),
+    # position-mode moves (section "Motion commands"); errors while executing latch
+    CommandSpec("MoveJointsRel", (6, 6), errors=(*_MOTION_ERRORS, 1007), queued=True,
+                requires="homed"),
+    CommandSpec("MovePose", (6, 6), errors=(*_MOTION_ERRORS, 1016), queued=True,
+                requires="homed"),
+    CommandSpec("MoveLin", (6, 6), errors=(*_MOTION_ERRORS, 1007, 1012, 1016), queued=True,
+                requires="homed"),
+    CommandSpec("MoveLinRelTrf", (6, 6), errors=(*_MOTION_ERRORS, 1007, 1012, 1016),
+                queued=True, requires="homed"),
+    CommandSpec("MoveLinRelWrf", (6, 6), errors=(*_MOTION_ERRORS, 1007, 1012, 1016),
+                queued=True, requires="homed"),
+    CommandSpec("Delay", (1, 1), errors=(*_MOTION_ERRORS, 1003), queued=True, requires="homed"),
+    # motion-queue settings: no answer on success, default restored at every activation
+    *(CommandSpec(name, (n, n), errors=(*_MOTION_ERRORS, 1003), queued=True, requires="homed")
+      for name, n in (("SetJointVel", 1), ("SetJointAcc", 1), ("SetCartLinVel", 1),
+                      ("SetCartAngVel", 1), ("SetCartAcc", 1), ("SetBlending", 1),
+                      ("SetAutoConf", 1), ("SetTrf", 6), ("SetWrf", 6))),
+    # real-time data requests: answered with the same record as the monitoring cycle
+    *(CommandSpec(name, answers=(code,)) for name, code in RT_QUERIES.items()),
 )}
 
 

@@ -4,10 +4,12 @@ Behaviour modelled (Meca500 R3 programming manual):
 - velocity mode (MoveJointsVel): the commanded joint rates are held for ``vel_timeout_s``
   (SetVelTimeout, default 0.05 s), then the arm decelerates to rest;
 - position mode (MoveJoints): joint-space motion to the target, all joints scaled together so
-  that none exceeds its speed limit;
+  that none exceeds its speed limit times ``pos_speed_scale`` (SetJointVel, as a fraction);
 - a joint that would pass its limit stops the arm at the limit and latches error 1007;
-  approaching the wrist singularity (|sin q5| < sin 0.5 deg) latches 1012. In error the arm is
-  at rest and ignores motion commands until ``reset_error()``.
+  approaching the wrist singularity (|sin q5| < sin 0.5 deg) in velocity mode latches 1012.
+  Position mode crosses singularities (manual, MoveJoints: "the robot can cross singularities
+  without any problem"); Cartesian moves are checked by their planner (the wire simulator).
+  In error the arm is at rest and ignores motion commands until ``reset_error()``.
 Joint speeds (Meca500 manual) are never exceeded, including during the servo lag.
 """
 
@@ -56,6 +58,8 @@ class SimArmModel:
         self.target = list(self.q)
         self.error_code = 0
         self.moving = False
+        #: position mode speed limit as a fraction of ``vmax`` (SetJointVel / 100)
+        self.pos_speed_scale = 1.0
 
     # ------------------------------------------------------------------ commands
     def command_velocity(self, qdot_deg_s, t: float) -> bool:
@@ -101,7 +105,8 @@ class SimArmModel:
         else:
             k = 1.0 / max(self.p.position_tau_s, ts)
             ref = [(a - b) * k for a, b in zip(self.target, q)]
-            scale = max(abs(r) / m for r, m in zip(ref, vmax))
+            s = max(self.pos_speed_scale, 1e-6)
+            scale = max(abs(r) / (m * s) for r, m in zip(ref, vmax))
             if scale > 1.0:  # synchronous scaling: straight line in joint space
                 ref = [r / scale for r in ref]
         a = -math.expm1(-ts / self.p.servo_tau_s)   # exact first-order discretisation
@@ -129,7 +134,8 @@ class SimArmModel:
             if new_q[i] < self.lo[i] or new_q[i] > self.hi[i]:
                 new_q[i] = min(max(new_q[i], self.lo[i]), self.hi[i])
                 self._fault(ERROR_JOINT_LIMIT)
-        if abs(math.sin(math.radians(new_q[4]))) < self.p.wrist_singularity_min and \
+        if self.mode == "vel" and \
+                abs(math.sin(math.radians(new_q[4]))) < self.p.wrist_singularity_min and \
                 abs(math.sin(math.radians(new_q[4]))) < abs(math.sin(math.radians(q[4]))):
             # stop before entering the singular band (moving out of it is allowed)
             new_q = list(q)

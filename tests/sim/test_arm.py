@@ -86,11 +86,23 @@ def test_move_joints_past_the_limit_stops_at_the_limit():
     assert world.arm.q[2] == pytest.approx(70.0)
 
 
-def test_wrist_singularity_latches_1012_before_entering_it():
+def test_a_joint_move_crosses_the_wrist_singularity():
+    """Programming manual, MoveJoints: "the robot can cross singularities without any
+    problem"; only joint limits stop a joint-space move."""
     world = World(WorldConfig(seed=0))
     world.teleport_arm((0.0, -10.0, 20.0, 0.0, 5.0, 0.0))
     world.arm.command_position((0.0, -10.0, 20.0, 0.0, -5.0, 0.0))
     world.run(0.5)
+    assert world.arm.error_code == 0
+    assert world.arm.q[4] == pytest.approx(-5.0, abs=1e-3)
+
+
+def test_wrist_singularity_latches_1012_before_entering_it():
+    world = World(WorldConfig(seed=0))
+    world.teleport_arm((0.0, -10.0, 20.0, 0.0, 5.0, 0.0))
+    for _ in range(250):                        # -20 deg/s on J5, refreshed every step
+        world.arm.command_velocity((0.0, 0.0, 0.0, 0.0, -20.0, 0.0), world.t)
+        world.run(world.ts)
     assert world.arm.error_code == ERROR_SINGULARITY
     assert abs(math.sin(math.radians(world.arm.q[4]))) >= math.sin(math.radians(0.5))
     assert world.kin.singularity(world.arm.q).wrist >= math.sin(math.radians(0.5))
