@@ -152,7 +152,7 @@ class ProtocolRunner:
                  tap: Callable[[dict], None] | None = None,
                  live_summary: bool = True,
                  limit_share: float = LIMIT_SHARE_OF_STRENGTH,
-                 live: int | None = None) -> None:
+                 live: int | None = None, resume_arm: bool = False) -> None:
         if not 0.0 < limit_share <= (1.0 if devices is None else LIMIT_SHARE_OF_STRENGTH):
             raise ConfigError("limit_share", limit_share,
                               f"0 < share <= {LIMIT_SHARE_OF_STRENGTH} of the file's strength "
@@ -175,6 +175,7 @@ class ProtocolRunner:
         self._live_summary = live_summary
         calibrate = any(s.kind == "calibrate_load" for s in protocol.steps)
         self.devices = devices
+        self.resume_arm = resume_arm
         self.procedure: Procedure | None = None
         if devices is None:
             self.procedure = Procedure.simulated(
@@ -255,7 +256,7 @@ class ProtocolRunner:
         if self.devices is None:
             async with self.procedure:
                 return await self._run()
-        async with open_devices(self.devices) as d:
+        async with open_devices(self.devices, resume_arm=self.resume_arm) as d:
             self.procedure = Procedure.over(d, runtime_config(self.p), sink=self._row,
                                             event_sink=self._event)
             async with self.procedure:

@@ -59,7 +59,8 @@ def _run(args: argparse.Namespace) -> int:
 
     runner = ProtocolRunner(protocol, recording=None if args.out is None else args.out,
                             progress=on_progress, no_record=args.no_record,
-                            devices=devices, overwrite=args.force, live=args.live)
+                            devices=devices, overwrite=args.force, live=args.live,
+                            resume_arm=args.resume_arm)
     try:
         with progress:
             result = asyncio.run(runner.run(handle_sigint=True))
@@ -97,5 +98,9 @@ def add_parser(sub) -> None:
     run.add_argument("--force", action="store_true",
                      help="replace the recording file if it exists (refused otherwise)")
     add_devices_options(run)
+    run.add_argument("--resume-arm", action="store_true",
+                     help="with devices: resume an arm found paused (a run that did not park "
+                          "it, an expired connection watchdog) once the workspace is clear; "
+                          "an arm in error is still refused")
     run.add_argument("--quiet", action="store_true", help="no progress display")
     run.set_defaults(func=cmd_run)

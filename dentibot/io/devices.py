@@ -24,7 +24,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from dentibot.errors import ConfigError
+from dentibot.errors import ConfigError, DeviceFault
 from dentibot.io.aux_modbus import AuxModbusDriver
 from dentibot.io.epos4 import (
     DEFAULT_CONSUMER_MS,
@@ -159,6 +159,12 @@ def load_devices_config(path: str | Path) -> DevicesConfig:
     return load(path, DevicesConfig, DevicesFileError)
 
 
+#: Why a paused arm is not resumed without the operator (and how they resume it).
+ARM_PAUSED = ("the arm is paused (a previous run ended without parking it, or its connection "
+              "watchdog expired): nothing moves until the operator resumes it, once the "
+              "workspace is clear (dentibot run --resume-arm; in a session: connect "
+              "resume-arm)")
+
 #: Environment variable naming the device configuration file.
 DEVICES_ENV = "DENTIBOT_DEVICES"
 #: File name looked for in the working directory and in the user's configuration directory.
@@ -217,8 +223,14 @@ class OpenDevices:
 
 
 @contextlib.asynccontextmanager
-async def open_devices(cfg: DevicesConfig, *, home: bool = True) -> AsyncIterator[OpenDevices]:
-    """Connect and start every device; close them all (in reverse) on exit."""
+async def open_devices(cfg: DevicesConfig, *, home: bool = True,
+                       resume_arm: bool = False) -> AsyncIterator[OpenDevices]:
+    """Connect and start every device; close them all (in reverse) on exit.
+
+    An arm found paused (a run that ended without parking it, an expired connection
+    watchdog) is an error unless ``resume_arm``: resuming is the operator's decision, taken
+    once the workspace is clear (:meth:`Meca500Driver.resume`, which refuses an arm in
+    error)."""
     a, f, h, x = cfg.arm, cfg.ft, cfg.handpiece, cfg.aux
     async with contextlib.AsyncExitStack() as stack:
         ft = NetFTDriver(f.host, f.port, f.http_port, counts_per_force=f.counts_per_force,
@@ -247,6 +259,10 @@ async def open_devices(cfg: DevicesConfig, *, home: bool = True) -> AsyncIterato
                             connection_watchdog_s=a.connection_watchdog_s)
         await arm.connect()
         stack.push_async_callback(arm.close)
+        if arm.paused and arm.activated:
+            if not resume_arm:
+                raise DeviceFault("meca500", ARM_PAUSED)
+            await arm.resume()
         if home:
             await arm.activate()
             await arm.home()

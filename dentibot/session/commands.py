@@ -46,10 +46,12 @@ class CommandSpec:
 
 
 _SPECS = (
-    CommandSpec("connect", "connect [DEVICES.yaml]",
+    CommandSpec("connect", "connect [DEVICES.yaml] [resume-arm]",
                 "open the devices (built-in simulator by default)",
                 "open the devices: the built-in simulator, or the drivers of a device "
-                "configuration (the session's --devices when given)", needs_connection=False),
+                "configuration (the session's --devices when given); resume-arm resumes an "
+                "arm found paused, once the workspace is clear (an arm in error is refused)",
+                needs_connection=False),
     CommandSpec("calibrate", "calibrate load | calibrate tcp",
                 "TCP (pedal at each pose) or load identification",
                 "load: the load-identification routine (state calibrating.load, back to idle "

@@ -287,11 +287,12 @@ class SessionController:
     async def _cmd_connect(self, cmd: Command) -> list[Reply]:
         if self.connected:
             return [Reply("info", f"already connected: {self.source}")]
-        if cmd.args:
-            self.devices_cfg = load_devices_config(cmd.args[0])
+        args = [a for a in cmd.args if a != "resume-arm"]
+        if args:
+            self.devices_cfg = load_devices_config(args[0])
         self._busy = "connecting"
         try:
-            await self.connect()
+            await self.connect(resume_arm="resume-arm" in cmd.args)
         except (DentibotError, OSError) as exc:
             return [Reply("error", f"connect failed: {exc}")]
         finally:
@@ -504,8 +505,9 @@ class SessionController:
         return [await self.shutdown()]
 
     # ------------------------------------------------------------------ connect / loop
-    async def connect(self) -> None:
-        """Open the devices, build the procedure, start its control task."""
+    async def connect(self, resume_arm: bool = False) -> None:
+        """Open the devices, build the procedure, start its control task (``resume_arm``: an
+        arm found paused is resumed, on the operator's word)."""
         p = self.protocol
         if self._stack is not None:            # a previous connection whose control task died
             await self._stack.aclose()
@@ -518,7 +520,8 @@ class SessionController:
         else:
             stack = contextlib.AsyncExitStack()
             try:
-                d = await stack.enter_async_context(open_devices(self.devices_cfg))
+                d = await stack.enter_async_context(open_devices(self.devices_cfg,
+                                                                 resume_arm=resume_arm))
             except BaseException:
                 await stack.aclose()
                 raise
