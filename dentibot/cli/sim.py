@@ -12,6 +12,7 @@ import contextlib
 import gc
 from pathlib import Path
 
+from dentibot.cli.common import user_errors
 from dentibot.io.devices import devices_yaml
 from dentibot.sim.serve import ServePorts, VirtualDentiBot
 from dentibot.sim.world import WorldConfig
@@ -20,7 +21,8 @@ from dentibot.sim.world import WorldConfig
 async def _serve(args: argparse.Namespace) -> None:
     ports = ServePorts(host=args.host, meca_port=args.meca_port, netft_port=args.netft_port,
                        netft_http_port=args.netft_http_port, modbus_port=args.modbus_port,
-                       can_port=args.can_port, node_id=args.node_id)
+                       can_port=args.can_port, node_id=args.node_id,
+                       can_channel=args.can_channel, can_interface=args.can_interface)
     async with VirtualDentiBot(WorldConfig(seed=args.seed, motion=args.motion), ports) as bot:
         # Everything built so far leaves the collector's view: a full collection over it took
         # 35-85 ms under load, long enough for the F/T stream to look stale to a driver.
@@ -29,7 +31,8 @@ async def _serve(args: argparse.Namespace) -> None:
         print(f"virtual DentiBot on {p['host']}: Meca500 tcp/{p['meca_port']} (monitoring "
               f"tcp/{p['meca_monitor_port']}), Net F/T udp/{p['netft_port']} (http "
               f"tcp/{p['netft_http_port']}), Modbus tcp/{p['modbus_port']}, EPOS4 node "
-              f"{args.node_id} via socketcand tcp/{p['can_port']} channel {p['can_channel']}",
+              f"{args.node_id} via socketcand tcp/{p['can_port']} channel {p['can_channel']}"
+              + (f" and {args.can_interface} {args.can_channel}" if args.can_interface else ""),
               flush=True)
         if args.write_devices:
             Path(args.write_devices).write_text(devices_yaml(bot.devices_config()),
@@ -41,6 +44,7 @@ async def _serve(args: argparse.Namespace) -> None:
             await asyncio.Event().wait()
 
 
+@user_errors
 def cmd_serve(args: argparse.Namespace) -> int:
     with contextlib.suppress(KeyboardInterrupt):
         asyncio.run(_serve(args))
@@ -60,6 +64,12 @@ def add_parser(sub) -> None:
                        help="Net F/T calibration page (HTTP) port")
     serve.add_argument("--modbus-port", type=int, default=5020, help="aux I/O Modbus TCP port")
     serve.add_argument("--can-port", type=int, default=29536, help="socketcand TCP port")
+    serve.add_argument("--can-channel", default="vcan0",
+                       help="CAN channel: the socketcand channel name and the --can-interface "
+                            "channel")
+    serve.add_argument("--can-interface", metavar="INTERFACE",
+                       help="also attach the EPOS4 node to this python-can interface on "
+                            "--can-channel (e.g. socketcan for a kernel vcan)")
     serve.add_argument("--node-id", type=int, default=1, help="EPOS4 CANopen node id")
     serve.add_argument("--seed", type=int, default=0, help="simulated world seed")
     serve.add_argument("--motion", default="static", choices=["static", "square", "head"],

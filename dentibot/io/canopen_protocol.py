@@ -16,16 +16,19 @@ Contents
   23..16, consumer time in ms in bits 15..0; :func:`encode_consumer_heartbeat`), the
   heartbeat error code 0x8130 (:data:`HEARTBEAT_ERROR_CODE`), the abort connection option
   code 0x6007 (:class:`AbortConnectionOption`) and the quick stop option code 0x605A
-  (:data:`QUICK_STOP_OPTIONS`), CiA 402. devices.md names only the heartbeat COB-ID; these
-  are the standards' definitions, which the driver writes and reads back at start-up.
+  (:data:`QUICK_STOP_OPTIONS`), CiA 402: the standards' definitions, which the driver
+  writes and reads back at start-up.
 - Expedited SDO (1..4 data bytes, all this project needs): requests, responses, aborts and the
   CiA 301 abort-code table (:data:`SDO_ABORT_CODES`). Segmented and block transfers are not
   implemented (a decoder reports them as ``kind="other"``/``"upload_segmented"``).
-- The objects used (:data:`OBJECTS`, by name and by (index, sub)), with data type and unit.
+- The objects used (:data:`OBJECTS`, by name and by (index, sub)), with data type, unit and
+  the parameter name of the EPOS4's electronic data sheet; the records and arrays they form
+  (:data:`OBJECT_GROUPS`) and their highest sub-indices (:data:`HIGHEST_SUB_INDEX`).
 - CiA 402: statusword masks -> states (:data:`STATUSWORD_STATES`), controlword commands
   (:data:`CONTROLWORD`, :data:`CONTROLWORD_COMMANDS`), the state transitions
   (:data:`TRANSITIONS`, :func:`apply_controlword`), controlword/statusword bits of the profile
-  position and profile velocity modes.
+  position and profile velocity modes, the bits of "supported drive modes" 0x6502
+  (:data:`SUPPORTED_DRIVE_MODE_BITS`).
 - The project's fixed PDO mapping (:data:`RXPDO1`, :data:`RXPDO2`, :data:`TXPDO1`,
   :data:`TXPDO2`) and a generic packer for any mapping (:class:`PdoLayout`).
 
@@ -482,7 +485,8 @@ I32 = DataType("INTEGER32", "i", 32, 0x0004)
 @dataclass(frozen=True, slots=True)
 class OdObject:
     """One object dictionary entry: where it is, its type, access ("ro", "rw", "wo", "const"),
-    whether it can be mapped into an RxPDO ("rx") or a TxPDO ("tx"), its unit and a note."""
+    whether it can be mapped into an RxPDO ("rx") or a TxPDO ("tx"), its unit, a note and its
+    parameter name in the EPOS4's electronic data sheet (``label``; CiA 306 ParameterName)."""
 
     name: str
     index: int
@@ -492,6 +496,7 @@ class OdObject:
     pdo: str | None = None
     unit: str = ""
     note: str = ""
+    label: str = ""
 
     @property
     def address(self) -> tuple[int, int]:
@@ -502,54 +507,97 @@ class OdObject:
         """The PDO mapping entry for this object: index << 16 | sub << 8 | length in bits."""
         return mapping_word(self.index, self.sub, self.dtype.bits)
 
+    @property
+    def parameter_name(self) -> str:
+        """The name an EDS gives the entry (``label``, else ``name`` in words)."""
+        return self.label or self.name.replace("_", " ").capitalize()
+
     def __str__(self) -> str:
         return f"0x{self.index:04X}:{self.sub:02X} {self.name}"
 
 
+#: Name of sub-index 0 of a record or array: the highest sub-index it supports (CiA 301).
+HIGHEST_SUB = "Highest sub-index supported"
+
 _BASE_OBJECTS: tuple[OdObject, ...] = (
-    OdObject("device_type", 0x1000, 0, U32, "ro", note="low 16 bits: device profile (402)"),
-    OdObject("error_register", 0x1001, 0, U8, "ro", "tx"),
+    OdObject("device_type", 0x1000, 0, U32, "ro", note="low 16 bits: device profile (402)",
+             label="Device type"),
+    OdObject("error_register", 0x1001, 0, U8, "ro", "tx", label="Error register"),
     OdObject("consumer_heartbeat_count", 0x1016, 0, U8, "ro",
-             note="number of consumer heartbeat entries"),
+             note="number of consumer heartbeat entries", label=HIGHEST_SUB),
     OdObject("consumer_heartbeat_time", 0x1016, 1, U32, "rw",
-             note="bits 23..16 producer node id, 15..0 consumer time ms (CiA 301)"),
-    OdObject("producer_heartbeat_time", 0x1017, 0, U16, "rw", unit="ms", note="0 = off"),
+             note="bits 23..16 producer node id, 15..0 consumer time ms (CiA 301)",
+             label="Consumer 1 heartbeat time"),
+    OdObject("producer_heartbeat_time", 0x1017, 0, U16, "rw", unit="ms", note="0 = off",
+             label="Producer heartbeat time"),
+    OdObject("identity_count", 0x1018, 0, U8, "ro", label=HIGHEST_SUB),
     OdObject("vendor_id", 0x1018, 1, U32, "ro",
-             note="0x000000FB for maxon motor ag (unconfirmed)"),
-    OdObject("product_code", 0x1018, 2, U32, "ro"),
+             note="0x000000FB for maxon motor ag", label="Vendor ID"),
+    OdObject("product_code", 0x1018, 2, U32, "ro", label="Product code"),
+    OdObject("revision_number", 0x1018, 3, U32, "ro",
+             note="high word: firmware version", label="Revision number"),
+    OdObject("serial_number", 0x1018, 4, U32, "ro", label="Serial number"),
+    OdObject("axis_configuration_count", 0x3000, 0, U8, "ro", label=HIGHEST_SUB),
     OdObject("axis_main_sensor_resolution", 0x3000, 5, U32, "ro", unit="inc/turn",
-             note="increments per motor turn of the main position sensor"),
-    OdObject("motor_nominal_current", 0x3001, 1, U32, "rw", unit="mA"),
-    OdObject("motor_output_current_limit", 0x3001, 2, U32, "rw", unit="mA"),
+             note="increments per motor turn of the main position sensor",
+             label="Main sensor resolution"),
+    OdObject("motor_data_count", 0x3001, 0, U8, "ro", label=HIGHEST_SUB),
+    OdObject("motor_nominal_current", 0x3001, 1, U32, "rw", unit="mA",
+             label="Nominal current"),
+    OdObject("motor_output_current_limit", 0x3001, 2, U32, "rw", unit="mA",
+             label="Output current limit"),
     OdObject("motor_torque_constant", 0x3001, 5, U32, "rw", unit="uNm/A",
-             note="unit micro-Nm per A (unconfirmed)"),
-    OdObject("gear_reduction_numerator", 0x3003, 1, U32, "rw"),
-    OdObject("gear_reduction_denominator", 0x3003, 2, U32, "rw"),
-    OdObject("current_actual_averaged", 0x30D1, 1, I32, "ro", "tx", unit="mA"),
-    OdObject("current_actual", 0x30D1, 2, I32, "ro", "tx", unit="mA"),
-    OdObject("sto_inputs", 0x3202, 1, U8, "ro", "tx", note="STO input states (type unconfirmed)"),
-    OdObject("error_code", 0x603F, 0, U16, "ro", "tx"),
-    OdObject("controlword", 0x6040, 0, U16, "rw", "rx"),
-    OdObject("statusword", 0x6041, 0, U16, "ro", "tx"),
+             note="unit micro-Nm per A (unconfirmed)", label="Torque constant"),
+    OdObject("gear_configuration_count", 0x3003, 0, U8, "ro", label=HIGHEST_SUB),
+    OdObject("gear_reduction_numerator", 0x3003, 1, U32, "rw",
+             label="Gear reduction numerator"),
+    OdObject("gear_reduction_denominator", 0x3003, 2, U32, "rw",
+             label="Gear reduction denominator"),
+    OdObject("current_actual_values_count", 0x30D1, 0, U8, "ro", label=HIGHEST_SUB),
+    OdObject("current_actual_averaged", 0x30D1, 1, I32, "ro", "tx", unit="mA",
+             label="Current actual value averaged"),
+    OdObject("current_actual", 0x30D1, 2, I32, "ro", "tx", unit="mA",
+             label="Current actual value"),
+    OdObject("functional_safety_count", 0x3202, 0, U8, "ro", label=HIGHEST_SUB),
+    OdObject("sto_inputs", 0x3202, 1, U8, "ro", "tx", note="STO input states (type unconfirmed)",
+             label="STO input states"),
+    OdObject("error_code", 0x603F, 0, U16, "ro", "tx", label="Error code"),
+    OdObject("controlword", 0x6040, 0, U16, "rw", "rx", label="Controlword"),
+    OdObject("statusword", 0x6041, 0, U16, "ro", "tx", label="Statusword"),
     OdObject("abort_connection_option_code", 0x6007, 0, I16, "rw",
-             note="0 none, 1 fault, 2 disable voltage, 3 quick stop (CiA 402)"),
-    OdObject("quick_stop_option_code", 0x605A, 0, I16, "rw"),
-    OdObject("modes_of_operation", 0x6060, 0, I8, "rw", "rx"),
-    OdObject("modes_of_operation_display", 0x6061, 0, I8, "ro", "tx"),
-    OdObject("position_actual", 0x6064, 0, I32, "ro", "tx", unit="inc"),
+             note="0 none, 1 fault, 2 disable voltage, 3 quick stop (CiA 402)",
+             label="Abort connection option code"),
+    OdObject("quick_stop_option_code", 0x605A, 0, I16, "rw", label="Quick stop option code"),
+    OdObject("modes_of_operation", 0x6060, 0, I8, "rw", "rx", label="Modes of operation"),
+    OdObject("modes_of_operation_display", 0x6061, 0, I8, "ro", "tx",
+             label="Modes of operation display"),
+    OdObject("position_actual", 0x6064, 0, I32, "ro", "tx", unit="inc",
+             label="Position actual value"),
     OdObject("velocity_actual", 0x606C, 0, I32, "ro", "tx", unit="rpm",
-             note="velocity unit 0x60A9 assumed rpm (EPOS4 default)"),
-    OdObject("target_torque", 0x6071, 0, I16, "rw", "rx", unit="per mille of 0x6076"),
+             note="velocity unit 0x60A9 assumed rpm (EPOS4 default)",
+             label="Velocity actual value"),
+    OdObject("target_torque", 0x6071, 0, I16, "rw", "rx", unit="per mille of 0x6076",
+             label="Target torque"),
     OdObject("motor_rated_torque", 0x6076, 0, U32, "rw", unit="uNm",
-             note="unit micro-Nm (unconfirmed)"),
-    OdObject("torque_actual", 0x6077, 0, I16, "ro", "tx", unit="per mille of 0x6076"),
-    OdObject("target_position", 0x607A, 0, I32, "rw", "rx", unit="inc"),
-    OdObject("profile_velocity", 0x6081, 0, U32, "rw", "rx", unit="rpm"),
-    OdObject("profile_acceleration", 0x6083, 0, U32, "rw", "rx", unit="rpm/s"),
-    OdObject("profile_deceleration", 0x6084, 0, U32, "rw", "rx", unit="rpm/s"),
-    OdObject("quick_stop_deceleration", 0x6085, 0, U32, "rw", unit="rpm/s"),
-    OdObject("target_velocity", 0x60FF, 0, I32, "rw", "rx", unit="rpm"),
+             note="unit micro-Nm (unconfirmed)", label="Motor rated torque"),
+    OdObject("torque_actual", 0x6077, 0, I16, "ro", "tx", unit="per mille of 0x6076",
+             label="Torque actual value"),
+    OdObject("target_position", 0x607A, 0, I32, "rw", "rx", unit="inc", label="Target position"),
+    OdObject("profile_velocity", 0x6081, 0, U32, "rw", "rx", unit="rpm",
+             label="Profile velocity"),
+    OdObject("profile_acceleration", 0x6083, 0, U32, "rw", "rx", unit="rpm/s",
+             label="Profile acceleration"),
+    OdObject("profile_deceleration", 0x6084, 0, U32, "rw", "rx", unit="rpm/s",
+             label="Profile deceleration"),
+    OdObject("quick_stop_deceleration", 0x6085, 0, U32, "rw", unit="rpm/s",
+             label="Quick stop deceleration"),
+    OdObject("target_velocity", 0x60FF, 0, I32, "rw", "rx", unit="rpm", label="Target velocity"),
+    OdObject("supported_drive_modes", 0x6502, 0, U32, "ro", "tx",
+             note="bit per mode of operation (CiA 402): SUPPORTED_DRIVE_MODE_BITS",
+             label="Supported drive modes"),
 )
+
+_ORDINALS = {1: "1st", 2: "2nd", 3: "3rd"}
 
 
 def _pdo_parameter_objects() -> tuple[OdObject, ...]:
@@ -559,17 +607,23 @@ def _pdo_parameter_objects() -> tuple[OdObject, ...]:
         for k in range(4):
             comm, mapping = comm0 + k, comm0 + 0x200 + k
             n = k + 1
+            pdo = f"{'RxPDO' if kind == 'rx' else 'TxPDO'} {n}"
+            out.append(OdObject(f"{label}{n}_highest_sub", comm, 0, U8, "ro", label=HIGHEST_SUB))
             out.append(OdObject(f"{label}{n}_cob_id", comm, 1, U32, "rw",
-                                note="bit 31 = PDO not valid"))
+                                note="bit 31 = PDO not valid", label=f"COB-ID used by {pdo}"))
             out.append(OdObject(f"{label}{n}_transmission_type", comm, 2, U8, "rw",
-                                note="1..240 synchronous (every n-th SYNC), 254/255 async"))
+                                note="1..240 synchronous (every n-th SYNC), 254/255 async",
+                                label=f"Transmission type {pdo}"))
             if kind == "tx":
                 out.append(OdObject(f"{label}{n}_inhibit_time", comm, 3, U16, "rw",
-                                    unit="100 us"))
-                out.append(OdObject(f"{label}{n}_event_timer", comm, 5, U16, "rw", unit="ms"))
-            out.append(OdObject(f"{label}{n}_mapped_count", mapping, 0, U8, "rw"))
+                                    unit="100 us", label=f"Inhibit time {pdo}"))
+                out.append(OdObject(f"{label}{n}_event_timer", comm, 5, U16, "rw", unit="ms",
+                                    label=f"Event timer {pdo}"))
+            out.append(OdObject(f"{label}{n}_mapped_count", mapping, 0, U8, "rw",
+                                label=f"Number of mapped objects in {pdo}"))
             for s in range(1, 9):
-                out.append(OdObject(f"{label}{n}_mapping_{s}", mapping, s, U32, "rw"))
+                out.append(OdObject(f"{label}{n}_mapping_{s}", mapping, s, U32, "rw",
+                                    label=f"{_ORDINALS.get(s, f'{s}th')} mapped object in {pdo}"))
     return tuple(out)
 
 
@@ -577,6 +631,36 @@ def _pdo_parameter_objects() -> tuple[OdObject, ...]:
 OBJECTS: dict[str, OdObject] = {o.name: o for o in _BASE_OBJECTS + _pdo_parameter_objects()}
 #: The same objects by (index, sub).
 OBJECTS_BY_ADDRESS: dict[tuple[int, int], OdObject] = {o.address: o for o in OBJECTS.values()}
+
+#: CiA 301 object codes (an EDS's ObjectType): a variable, an array (sub-indices 1..n of one
+#: type) and a record (sub-indices of any type).
+OBJECT_CODE_VAR = 0x7
+OBJECT_CODE_ARRAY = 0x8
+OBJECT_CODE_RECORD = 0x9
+#: Indices with sub-indices: index -> (parameter name, object code), the names and codes of
+#: the EPOS4's own electronic data sheet (the identity object is a record, CiA 301).
+OBJECT_GROUPS: dict[int, tuple[str, int]] = {
+    0x1016: ("Consumer heartbeat time", OBJECT_CODE_ARRAY),
+    0x1018: ("Identity object", OBJECT_CODE_RECORD),
+    **{0x1400 + k: (f"Receive PDO {k + 1} parameter", OBJECT_CODE_RECORD) for k in range(4)},
+    **{0x1600 + k: (f"Receive PDO {k + 1} mapping", OBJECT_CODE_RECORD) for k in range(4)},
+    **{0x1800 + k: (f"Transmit PDO {k + 1} parameter", OBJECT_CODE_RECORD) for k in range(4)},
+    **{0x1A00 + k: (f"Transmit PDO {k + 1} mapping", OBJECT_CODE_RECORD) for k in range(4)},
+    0x3000: ("Axis configuration", OBJECT_CODE_ARRAY),
+    0x3001: ("Motor data", OBJECT_CODE_RECORD),
+    0x3003: ("Gear configuration", OBJECT_CODE_ARRAY),
+    0x30D1: ("Current actual values", OBJECT_CODE_ARRAY),
+    0x3202: ("Functional safety", OBJECT_CODE_ARRAY),
+}
+#: Sub-index 0 entries that hold the highest sub-index of their record or array (read-only,
+#: unlike a PDO mapping's sub-index 0, the number of mapped objects).
+HIGHEST_SUB_OBJECTS: frozenset[str] = frozenset(
+    o.name for o in OBJECTS.values() if o.sub == 0 and o.label == HIGHEST_SUB)
+
+#: The highest sub-index of each index with sub-indices (the value of its sub-index 0 where
+#: that is a :data:`HIGHEST_SUB_OBJECTS` entry).
+HIGHEST_SUB_INDEX: dict[int, int] = {
+    index: max(s for i, s in OBJECTS_BY_ADDRESS if i == index) for index in OBJECT_GROUPS}
 
 
 def obj(name: str) -> OdObject:
@@ -748,8 +832,8 @@ class State(Enum):
     FAULT = "fault"
 
 
-#: Statusword (mask, value) -> state, as in CiA 402 (the devices.md table plus "not ready to
-#: switch on" and "fault reaction active").
+#: Statusword (mask, value) -> state, as in CiA 402 (all eight states, "not ready to switch
+#: on" and "fault reaction active" included).
 STATUSWORD_STATES: tuple[tuple[int, int, State], ...] = (
     (0x4F, 0x00, State.NOT_READY_TO_SWITCH_ON),
     (0x4F, 0x40, State.SWITCH_ON_DISABLED),
@@ -823,7 +907,7 @@ class Command(Enum):
     FAULT_RESET = "fault reset"
 
 
-#: Controlword value a master sends for each command (devices.md). Fault reset acts on the
+#: Controlword value a master sends for each command (CiA 402). Fault reset acts on the
 #: rising edge of bit 7: send a word with bit 7 clear first.
 CONTROLWORD: dict[Command, int] = {
     Command.SHUTDOWN: 0x06,
@@ -959,6 +1043,19 @@ class Mode(IntEnum):
     CYCLIC_SYNC_POSITION = 8
     CYCLIC_SYNC_VELOCITY = 9
     CYCLIC_SYNC_TORQUE = 10
+
+
+#: Bit of each mode in "supported drive modes" 0x6502 (CiA 402: bit 0 profile position, 1
+#: velocity, 2 profile velocity, 3 profile torque, 5 homing, 6 interpolated position, 7..9
+#: cyclic synchronous position, velocity, torque). A real EPOS4 reports 0x000003A5.
+SUPPORTED_DRIVE_MODE_BITS: dict[Mode, int] = {
+    Mode.PROFILE_POSITION: 0,
+    Mode.PROFILE_VELOCITY: 2,
+    Mode.HOMING: 5,
+    Mode.CYCLIC_SYNC_POSITION: 7,
+    Mode.CYCLIC_SYNC_VELOCITY: 8,
+    Mode.CYCLIC_SYNC_TORQUE: 9,
+}
 
 
 # ============================================================================ PDO

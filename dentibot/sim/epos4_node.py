@@ -26,8 +26,14 @@ What it does (all framing from :mod:`dentibot.io.canopen_protocol`):
   then FAULT (fault reaction) or what 0x605A says (quick stop: 6 stay in QUICK STOP ACTIVE,
   the power-on value, 2 switch on disabled). The World's handpiece follows the ramp through
   its own speed loop. Errors where the power stage cannot brake (STO) switch it off at once.
-- Expedited SDO server over an object dictionary built from
-  :data:`~dentibot.io.canopen_protocol.OBJECTS` (aborts: no object 0x06020000, no sub
+- Object dictionary: exactly :data:`~dentibot.io.canopen_protocol.OBJECTS` -- the CiA 301
+  mandatory objects (device type 0x1000, error register 0x1001, identity 0x1018 with maxon's
+  vendor id), heartbeat 0x1016/0x1017, PDO parameters 0x1400-0x1BFF, the EPOS4 objects the
+  project uses and the CiA 402 objects python-canopen's ``BaseNode402`` uses, among them
+  supported drive modes 0x6502 (bits of the modes implemented: profile position and profile
+  velocity). Its electronic data sheet (CiA 306), :data:`EDS_PATH` (``dentibot/io/epos4.eds``),
+  is rendered from the same table and power-on values by :func:`render_eds`.
+- Expedited SDO server over that dictionary (aborts: no object 0x06020000, no sub
   0x06090011, read-only 0x06010002, length 0x06070010, bad value 0x06090030, segmented
   requests 0x05040001, PDO parameters while OPERATIONAL 0x08000022, mapping entries while
   sub 0 != 0 or the PDO is valid 0x06010000, unmappable 0x06040041, > 64 bits 0x06040042).
@@ -67,6 +73,7 @@ from __future__ import annotations
 import asyncio
 import math
 from fractions import Fraction
+from pathlib import Path
 from typing import Self
 
 import can
@@ -103,11 +110,21 @@ log = structlog.get_logger(__name__)
 STO_EMCY_CODE = 0x8A88
 #: EMCY code of an RxPDO with the wrong length (CiA 301 "PDO not processed due to length").
 PDO_LENGTH_EMCY_CODE = 0x8210
-#: Device type 0x1000: profile 402 in the low word; the high word (0x0002, servo drive) is an
-#: assumption.
+#: Device type 0x1000: profile 402 in the low word, 0x0002 (servo drive) in the high word, as
+#: an EPOS4 reports it.
 DEVICE_TYPE = 0x0002_0192
-#: maxon motor ag's CiA vendor id (unconfirmed).
+#: Identity object 0x1018 (CiA 301): maxon motor ag's CiA vendor id, and the product code and
+#: revision number (high word: firmware version 0x0170) of an EPOS4 Module 50/15 as in maxon's
+#: own device configuration file for it; the serial number is the simulator's own.
 VENDOR_ID = 0x0000_00FB
+PRODUCT_CODE = 0x6552_0000
+REVISION_NUMBER = 0x0170_0000
+SERIAL_NUMBER = 0x0000_0001
+#: Constructor defaults: producer heartbeat time 0x1017 (ms) and main sensor resolution
+#: 0x3000:05 (increments per motor turn: a 512-pulse quadrature encoder, an assumption for the
+#: handpiece motor).
+DEFAULT_HEARTBEAT_MS = 100
+DEFAULT_COUNTS_PER_TURN = 2048
 #: Velocity window for "target reached" in profile velocity mode, and the "speed zero"
 #: threshold, both in motor rpm (assumptions; the EPOS4 has its own parameters).
 VELOCITY_WINDOW_RPM = 20
@@ -117,7 +134,9 @@ _BRAKING = frozenset({State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE})
 #: States in which the power stage is on (statusword bit 4, voltage enabled).
 _POWERED = frozenset({State.READY_TO_SWITCH_ON, State.SWITCHED_ON, State.OPERATION_ENABLED,
                       State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE})
+#: The modes of operation the node implements, and their bits in 0x6502 (CiA 402).
 _SUPPORTED_MODES = frozenset({Mode.PROFILE_POSITION, Mode.PROFILE_VELOCITY})
+SUPPORTED_DRIVE_MODES = sum(1 << co.SUPPORTED_DRIVE_MODE_BITS[m] for m in _SUPPORTED_MODES)
 #: Objects whose writing (SDO or RxPDO) feeds the drive logic.
 _DRIVE_OBJECTS = frozenset({"controlword", "modes_of_operation", "target_velocity",
                             "target_position", "profile_velocity"})
@@ -128,6 +147,66 @@ RAMP_STEP_S = 0.001
 POWER_ON_ABORT_CONNECTION = int(AbortConnectionOption.QUICK_STOP)
 POWER_ON_QUICK_STOP_OPTION = 6
 POWER_ON_QUICK_STOP_DECEL = 10_000
+#: Power-on values that do not depend on the World or the constructor (the EDS's
+#: DefaultValue): application objects (reset node) ...
+POWER_ON_APPLICATION: dict[str, int] = {
+    "controlword": 0,
+    "abort_connection_option_code": POWER_ON_ABORT_CONNECTION,
+    "quick_stop_option_code": POWER_ON_QUICK_STOP_OPTION,
+    "modes_of_operation": 0,
+    "target_torque": 0,
+    "target_position": 0,
+    "profile_acceleration": 10_000,
+    "profile_deceleration": 10_000,
+    "quick_stop_deceleration": POWER_ON_QUICK_STOP_DECEL,
+    "target_velocity": 0,
+    "supported_drive_modes": SUPPORTED_DRIVE_MODES,
+}
+#: ... and communication objects (reset communication), PDO parameters aside.
+POWER_ON_COMMUNICATION: dict[str, int] = {
+    "device_type": DEVICE_TYPE,
+    "consumer_heartbeat_time": 0,
+    "vendor_id": VENDOR_ID,
+    "product_code": PRODUCT_CODE,
+    "revision_number": REVISION_NUMBER,
+    "serial_number": SERIAL_NUMBER,
+}
+#: The default PDO mapping, as an EPOS4's (deliberately not the project's): RxPDO1 =
+#: controlword, RxPDO2 = controlword + mode, TxPDO1 = statusword, TxPDO2 = statusword + mode
+#: display; PDO 3 and 4 not valid and empty. RxPDOs asynchronous (255), TxPDOs synchronous (1).
+DEFAULT_PDO_MAPPING: dict[tuple[str, int], tuple[str, ...]] = {
+    ("rx", 1): ("controlword",),
+    ("rx", 2): ("controlword", "modes_of_operation"),
+    ("tx", 1): ("statusword",),
+    ("tx", 2): ("statusword", "modes_of_operation_display"),
+}
+DEFAULT_TRANSMISSION_TYPE = {"rx": 255, "tx": 1}
+
+
+def default_pdo_parameters(node_id: int) -> dict[tuple[int, int], int]:
+    """Power-on values of the PDO communication and mapping parameters (0x1400-0x1BFF) of a
+    node ``node_id`` (0: COB-IDs without the node id, as an EDS writes them relative to
+    $NODEID)."""
+    out: dict[tuple[int, int], int] = {}
+    for direction, comm0 in (("rx", 0x1400), ("tx", 0x1800)):
+        for n in range(1, 5):
+            comm, mapping = comm0 + n - 1, comm0 + 0x200 + n - 1
+            fn = f"{'RPDO' if direction == 'rx' else 'TPDO'}{n}"
+            names = DEFAULT_PDO_MAPPING.get((direction, n), ())
+            cob = co.COB_BASE[fn] + node_id | (0 if names else PDO_COB_INVALID)
+            if direction == "tx":
+                cob |= co.PDO_COB_NO_RTR
+            out[(comm, 1)] = cob
+            out[(comm, 2)] = DEFAULT_TRANSMISSION_TYPE[direction]
+            if direction == "tx":
+                out[(comm, 3)] = 0
+                out[(comm, 5)] = 0
+            out[(mapping, 0)] = len(names)
+            for s in range(1, 9):
+                out[(mapping, s)] = 0
+            for s, nm in enumerate(names, 1):
+                out[(mapping, s)] = co.obj(nm).mapping_word
+    return out
 
 
 class _Abort(Exception):
@@ -151,7 +230,8 @@ class Epos4Node:
     """
 
     def __init__(self, world: World, bus: can.BusABC, node_id: int = 1, *,
-                 heartbeat_period_s: float = 0.1, encoder_counts_per_turn: int = 2048,
+                 heartbeat_period_s: float = DEFAULT_HEARTBEAT_MS / 1000,
+                 encoder_counts_per_turn: int = DEFAULT_COUNTS_PER_TURN,
                  name: str = "epos4-sim") -> None:
         self.node_id = co.check_node_id(node_id)
         if not (math.isfinite(heartbeat_period_s) and 0 <= heartbeat_period_s <= 65.535):
@@ -314,6 +394,11 @@ class Epos4Node:
     def error_code(self) -> int:
         return self._error_code
 
+    @property
+    def object_addresses(self) -> frozenset[tuple[int, int]]:
+        """Every (index, sub) the node's SDO server answers (its object dictionary)."""
+        return frozenset(self._od) | {co.obj(n).address for n in self._getters}
+
     # ------------------------------------------------------------------ object dictionary
     def _reset_application(self) -> None:
         """Power-on values of the application objects (0x2000-0x9FFF); drive disabled."""
@@ -323,26 +408,20 @@ class Epos4Node:
         nominal_ma = round(p.current_limit_a * 1000)   # assumption: nominal = limit current
         km_unm = round(p.km_mnm_per_a * 1000)
         for name, value in {
+            **POWER_ON_APPLICATION,
             "axis_main_sensor_resolution": self.counts_per_turn,
             "motor_nominal_current": nominal_ma,
             "motor_output_current_limit": nominal_ma,
             "motor_torque_constant": km_unm,
             "gear_reduction_numerator": gear.numerator,
             "gear_reduction_denominator": gear.denominator,
-            "controlword": 0,
-            "abort_connection_option_code": POWER_ON_ABORT_CONNECTION,
-            "quick_stop_option_code": POWER_ON_QUICK_STOP_OPTION,
-            "modes_of_operation": 0,
-            "target_torque": 0,
             "motor_rated_torque": round(km_unm * nominal_ma / 1000),
-            "target_position": 0,
             "profile_velocity": round(p.move_rpm * self.gear_ratio),
-            "profile_acceleration": 10000,
-            "profile_deceleration": 10000,
-            "quick_stop_deceleration": POWER_ON_QUICK_STOP_DECEL,
-            "target_velocity": 0,
         }.items():
             self._od[co.obj(name).address] = value
+        for name in co.HIGHEST_SUB_OBJECTS:          # sub-index 0 of records and arrays
+            o = co.obj(name)
+            self._od[o.address] = co.HIGHEST_SUB_INDEX[o.index]
         self._mode_display = 0
         self._sp_ack = False
         self._internal_limit = False
@@ -355,44 +434,15 @@ class Epos4Node:
         hp.set_current_limit(nominal_ma / 1000.0)     # 0x3001:02 at its power-on value
 
     def _reset_communication(self) -> None:
-        """Power-on values of the communication objects (0x1000-0x1FFF). The default PDO
-        mapping is deliberately not the project's: RxPDO1 = controlword, RxPDO2 = controlword
-        + mode, TxPDO1 = statusword, TxPDO2 = statusword + mode display; PDO 3 and 4 off."""
-        nid = self.node_id
+        """Power-on values of the communication objects (0x1000-0x1FFF), the PDO parameters
+        those of :data:`DEFAULT_PDO_MAPPING` (deliberately not the project's mapping)."""
         od = self._od
         for name, value in {
-            "device_type": DEVICE_TYPE,
+            **POWER_ON_COMMUNICATION,
             "producer_heartbeat_time": round(self.heartbeat_period_s * 1000),
-            "consumer_heartbeat_count": 1,
-            "consumer_heartbeat_time": 0,
-            "vendor_id": VENDOR_ID,
-            "product_code": 0,
         }.items():
             od[co.obj(name).address] = value
-        defaults = {
-            ("rx", 1): ("controlword",),
-            ("rx", 2): ("controlword", "modes_of_operation"),
-            ("tx", 1): ("statusword",),
-            ("tx", 2): ("statusword", "modes_of_operation_display"),
-        }
-        for direction, comm0 in (("rx", 0x1400), ("tx", 0x1800)):
-            for n in range(1, 5):
-                comm, mapping = comm0 + n - 1, comm0 + 0x200 + n - 1
-                fn = f"{'RPDO' if direction == 'rx' else 'TPDO'}{n}"
-                names = defaults.get((direction, n), ())
-                cob = co.cob_id(fn, nid) | (0 if names else PDO_COB_INVALID)
-                if direction == "tx":
-                    cob |= co.PDO_COB_NO_RTR
-                od[(comm, 1)] = cob
-                od[(comm, 2)] = 1 if direction == "tx" else 255
-                if direction == "tx":
-                    od[(comm, 3)] = 0
-                    od[(comm, 5)] = 0
-                for s in range(1, 9):
-                    od[(mapping, s)] = 0
-                for s, nm in enumerate(names, 1):
-                    od[(mapping, s)] = co.obj(nm).mapping_word
-                od[(mapping, 0)] = len(names)
+        od.update(default_pdo_parameters(self.node_id))
         for direction in ("rx", "tx"):
             for n in range(1, 5):
                 self._rebuild_layout(direction, n)
@@ -993,3 +1043,127 @@ class Epos4Node:
         self.emcy_sent += 1
         log.info("epos4 sim EMCY", node=self.node_id, code=hex(code),
                  meaning=co.error_meaning(code))
+
+
+# ====================================================================== electronic data sheet
+#: The node's electronic data sheet (CiA 306), shipped in the package beside the driver:
+#: ``canopen.BaseNode402(node_id, EDS_PATH)``. Generated by :func:`render_eds`; a test keeps
+#: the file and the object table in agreement.
+EDS_PATH = Path(co.__file__).with_name("epos4.eds")
+_EDS_HEX_NAMES = frozenset({"device_type", "vendor_id", "product_code", "revision_number",
+                            "serial_number", "supported_drive_modes",
+                            "consumer_heartbeat_time"})
+
+
+def eds_default(o: co.OdObject) -> str | None:
+    """An object's DefaultValue in the EDS: its power-on value where that does not depend on
+    the World (motor data, gear and profile velocity do; live values have none); PDO COB-IDs
+    relative to $NODEID."""
+    pdo = default_pdo_parameters(0)
+    if o.name in POWER_ON_APPLICATION:
+        value = POWER_ON_APPLICATION[o.name]
+    elif o.name in POWER_ON_COMMUNICATION:
+        value = POWER_ON_COMMUNICATION[o.name]
+    elif o.name in co.HIGHEST_SUB_OBJECTS:
+        value = co.HIGHEST_SUB_INDEX[o.index]
+    elif o.name == "producer_heartbeat_time":
+        value = DEFAULT_HEARTBEAT_MS
+    elif o.name == "axis_main_sensor_resolution":
+        value = DEFAULT_COUNTS_PER_TURN
+    elif o.address in pdo:
+        value = pdo[o.address]
+        if o.sub == 1 and (o.index < 0x1600 or 0x1800 <= o.index < 0x1A00):   # COB-IDs
+            return f"$NODEID+0x{value:08X}"
+        if o.dtype is co.U32:
+            return f"0x{value:08X}"
+        return str(value)
+    else:
+        return None
+    if o.name in _EDS_HEX_NAMES:
+        return f"0x{value:08X}"
+    return str(value)
+
+
+def render_eds() -> str:
+    """The EDS (CiA 306, the INI-style text ``canopen.import_od`` reads) of the objects the
+    node implements, from :data:`~dentibot.io.canopen_protocol.OBJECTS` and the power-on
+    values above."""
+    objs = sorted(co.OBJECTS.values(), key=lambda o: o.address)
+    indices = sorted({o.index for o in objs})
+    out: list[str] = [
+        "; Electronic data sheet (CiA 306) of the DentiBot simulated EPOS4 CANopen node.",
+        "; Generated by dentibot.sim.epos4_node.render_eds from the object table in",
+        "; dentibot.io.canopen_protocol: regenerate it rather than edit it.",
+        "",
+        "[FileInfo]",
+        "FileName=epos4.eds",
+        "FileVersion=1",
+        "FileRevision=0",
+        "EDSVersion=4.0",
+        "Description=Simulated maxon EPOS4: the subset of the EPOS4 objects DentiBot implements",
+        "CreatedBy=DentiBot",
+        "",
+        "[DeviceInfo]",
+        "VendorName=maxon motor ag",
+        f"VendorNumber=0x{VENDOR_ID:08X}",
+        "ProductName=EPOS4 (DentiBot simulated node)",
+        f"ProductNumber=0x{PRODUCT_CODE:08X}",
+        f"RevisionNumber=0x{REVISION_NUMBER:08X}",
+        *(f"BaudRate_{r}={int(r != 10)}" for r in (10, 20, 50, 125, 250, 500, 800, 1000)),
+        "SimpleBootUpMaster=0",
+        "SimpleBootUpSlave=1",
+        "Granularity=8",
+        "DynamicChannelsSupported=0",
+        "GroupMessaging=0",
+        "NrOfRXPDO=4",
+        "NrOfTXPDO=4",
+        "LSS_Supported=0",
+        "",
+        "[DummyUsage]",
+        *(f"Dummy{i:04d}=0" for i in range(1, 8)),
+        "",
+        "[Comments]",
+        "Lines=3",
+        "Line1=Modes of operation: profile position (1) and profile velocity (3), 0x6502.",
+        "Line2=Expedited SDO only. TxPDOs are sent on SYNC (transmission types 0..240).",
+        "Line3=Velocities in motor rpm, accelerations in motor rpm/s, positions in increments.",
+        "",
+    ]
+    mandatory = [i for i in indices if i in (0x1000, 0x1001, 0x1018)]
+    manufacturer = [i for i in indices if 0x2000 <= i < 0x6000]
+    optional = [i for i in indices if i not in mandatory and i not in manufacturer]
+    for title, group in (("MandatoryObjects", mandatory), ("OptionalObjects", optional),
+                         ("ManufacturerObjects", manufacturer)):
+        out += [f"[{title}]", f"SupportedObjects={len(group)}",
+                *(f"{k}=0x{i:04X}" for k, i in enumerate(group, 1)), ""]
+
+    def entry(section: str, o: co.OdObject) -> list[str]:
+        lines = [f"[{section}]", f"ParameterName={o.parameter_name}", "ObjectType=0x7",
+                 f"DataType=0x{o.dtype.code:04X}", f"AccessType={o.access}"]
+        default = eds_default(o)
+        if default is not None:
+            lines.append(f"DefaultValue={default}")
+        if o.name.endswith("_mapped_count"):
+            lines += ["LowLimit=0", "HighLimit=8"]
+        lines += [f"PDOMapping={int(o.pdo is not None)}", ""]
+        return lines
+
+    for index in indices:
+        subs = [o for o in objs if o.index == index]
+        if index not in co.OBJECT_GROUPS:
+            (o,) = subs
+            out += entry(f"{index:04X}", o)
+            continue
+        name, code = co.OBJECT_GROUPS[index]
+        out += [f"[{index:04X}]", f"ParameterName={name}", f"ObjectType=0x{code:X}",
+                f"SubNumber={len(subs)}", ""]
+        for o in subs:
+            out += entry(f"{index:04X}sub{o.sub:X}", o)
+    return "\n".join(out)
+
+
+def write_eds(path: Path | str = EDS_PATH) -> Path:
+    """Write :func:`render_eds` to ``path`` (the shipped file by default)."""
+    path = Path(path)
+    path.write_text(render_eds(), encoding="utf-8")
+    return path

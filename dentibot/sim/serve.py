@@ -4,7 +4,9 @@
 - ATI Net F/T RDT over UDP on ``netft_port`` plus its HTTP calibration page on ``netft_http_port``;
 - the auxiliary-I/O Modbus TCP server on ``modbus_port``;
 - the EPOS4 as a CANopen node on a python-can ``virtual`` bus, exposed to other processes
-  through a socketcand-compatible TCP endpoint on ``can_port``.
+  through a socketcand-compatible TCP endpoint on ``can_port`` (channel ``can_channel``) and,
+  with ``can_interface`` set, on that python-can bus as well (e.g. ``socketcan`` on a kernel
+  vcan named ``can_channel``: :class:`~dentibot.sim.can_bus_attach.CanBusBridge`).
 
 The aux I/O's host-lost output is wired to the EPOS4's safe-torque-off input (in series with
 the emergency stop, as a clinic's safety relay chain would be): when the host stops feeding the
@@ -27,6 +29,7 @@ import structlog
 
 from dentibot.io.devices import DevicesConfig, loopback_config
 from dentibot.sim.aux_modbus_server import AuxModbusServer
+from dentibot.sim.can_bus_attach import CanBusBridge, open_bus
 from dentibot.sim.epos4_node import Epos4Node
 from dentibot.sim.meca500_server import Meca500Server
 from dentibot.sim.netft_server import NetFTServer
@@ -51,6 +54,9 @@ class ServePorts:
     can_channel: str = "vcan0"
     node_id: int = 1
     netft_rate_hz: float = 500.0
+    #: python-can interface to attach the CAN bus to as well ("socketcan" for a kernel vcan
+    #: named ``can_channel``); None: socketcand only.
+    can_interface: str | None = None
 
 
 class VirtualDentiBot:
@@ -70,6 +76,7 @@ class VirtualDentiBot:
         self.modbus: AuxModbusServer | None = None
         self.epos: Epos4Node | None = None
         self.socketcand: SocketcandServer | None = None
+        self.can_bridge: CanBusBridge | None = None
 
     @property
     def can_channel(self) -> str:
@@ -84,6 +91,7 @@ class VirtualDentiBot:
             "netft_port": self.netft.port, "netft_http_port": self.netft.http_port,
             "modbus_port": self.modbus.port, "can_port": self.socketcand.port,
             "can_channel": self.cfg.can_channel, "can_virtual_channel": self._bus_channel,
+            "can_interface": self.cfg.can_interface,
         }
 
     def devices_config(self) -> DevicesConfig:
@@ -113,6 +121,12 @@ class VirtualDentiBot:
             can.Bus(interface="virtual", channel=self._bus_channel), c.host, c.can_port,
             c.can_channel)
         try:
+            if c.can_interface:
+                outer = open_bus(c.can_interface, c.can_channel)
+                self.can_bridge = CanBusBridge(
+                    can.Bus(interface="virtual", channel=self._bus_channel), outer,
+                    own_buses=True)
+                self.can_bridge.start()
             for server in (self.meca, self.netft, self.modbus, self.epos, self.socketcand):
                 await server.start()
         except BaseException:
@@ -127,6 +141,9 @@ class VirtualDentiBot:
                 await server.close()
         if self.socketcand is not None:
             self.socketcand.bus.shutdown()
+        if self.can_bridge is not None:
+            self.can_bridge.close()
+            self.can_bridge = None
         if self._bus is not None:
             self._bus.shutdown()
             self._bus = None

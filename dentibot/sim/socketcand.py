@@ -1,8 +1,10 @@
 """A socketcand-compatible TCP endpoint bridging TCP clients and a python-can bus.
 
-python-can's ``virtual`` bus only works inside one process and kernel vcan is not available
-on these machines; :class:`SocketcandServer` lets a driver in *another* process reach a
-simulated node (:class:`~dentibot.sim.epos4_node.Epos4Node`) sitting on a ``virtual`` bus::
+python-can's ``virtual`` bus only works inside one process, and a kernel vcan needs root to
+create (where it exists, :class:`~dentibot.sim.can_bus_attach.CanBusBridge` attaches the bus
+to it as well); :class:`SocketcandServer` lets a driver in *another* process reach a simulated
+node (:class:`~dentibot.sim.epos4_node.Epos4Node`) sitting on a ``virtual`` bus, with no
+privileges::
 
     can.Bus(interface="socketcand", host="127.0.0.1", port=server.port, channel="vcan0")
 
