@@ -16,8 +16,9 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "dentibot"
 
-#: Modules every layer may use: the version, the typed errors and the strict YAML reader.
-BASE = {"dentibot", "dentibot.errors", "dentibot.yamlfile"}
+#: Modules every layer may use: the version, the typed errors, the strict YAML reader and the
+#: logging set-up.
+BASE = {"dentibot", "dentibot.errors", "dentibot.yamlfile", "dentibot.logs"}
 
 _BELOW_APP = {"runtime", "states", "control", "io", "protocol", "telemetry"}
 #: layer -> the layers it may import (its own always).
@@ -36,7 +37,7 @@ MAY_IMPORT: dict[str, set[str]] = {
     "testing": _BELOW_APP | {"app"},
     "cli": _BELOW_APP | {"app", "sim", "session", "experiments", "trials"},
     # the Python API for notebooks and scripts: the same reach as the command line
-    "api": _BELOW_APP | {"app", "sim", "experiments", "cli"},
+    "api": _BELOW_APP | {"app", "sim", "experiments"},
 }
 
 

@@ -4,33 +4,14 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
 from dentibot import __version__
 
 
-class _Stderr:
-    """Whatever ``sys.stderr`` is when a line is logged (not when logging was configured)."""
-
-    def write(self, text: str) -> int:
-        return sys.stderr.write(text)
-
-    def flush(self) -> None:
-        sys.stderr.flush()
-
-
 def _configure_logging(args: argparse.Namespace) -> None:
-    import logging
+    from dentibot.logs import configure_logging
 
-    import structlog
-
-    level = getattr(logging, args.log_level.upper())
-    processors = [structlog.processors.add_log_level, structlog.processors.TimeStamper("iso")]
-    processors.append(structlog.processors.JSONRenderer() if args.log_json
-                      else structlog.dev.ConsoleRenderer(colors=False))
-    structlog.configure(processors=processors,
-                        wrapper_class=structlog.make_filtering_bound_logger(level),
-                        logger_factory=structlog.PrintLoggerFactory(_Stderr()))
+    configure_logging(args.log_level, json=args.log_json)
 
 
 def build_parser() -> argparse.ArgumentParser:
