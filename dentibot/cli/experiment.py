@@ -18,17 +18,18 @@ import argparse
 import json
 import math
 import sys
-import time
-from pathlib import Path
+from collections.abc import Callable
 
 import numpy as np
 from rich.console import Console
 from rich.table import Table
 
 from dentibot.control.feedrate import FILE_STRENGTH_MNM
+from dentibot.errors import ConfigError
 from dentibot.experiments import alignment as al
 from dentibot.experiments import preclinical as pc
-from dentibot.experiments.common import default_workers, run_all
+from dentibot.experiments import results as res
+from dentibot.experiments.common import default_workers
 from dentibot.protocol.schema import MATERIAL_NAMES
 
 
@@ -43,9 +44,12 @@ def _console() -> Console:
     return Console() if sys.stdout.isatty() else Console(width=160)
 
 
-def _progress(console: Console | None, text: str) -> None:
-    if console is not None:
-        console.print(text, soft_wrap=True, highlight=False)
+def _progress(args: argparse.Namespace) -> Callable[[str], None] | None:
+    """The progress lines on stderr, unless ``--quiet``."""
+    if args.quiet:
+        return None
+    console = Console(file=sys.stderr)
+    return lambda text: console.print(text, soft_wrap=True, highlight=False)
 
 
 def _checks_table(checks) -> Table:
@@ -56,35 +60,6 @@ def _checks_table(checks) -> Table:
     for c in checks:
         t.add_row(c.claim, "[green]yes[/]" if c.passed else "[red]no[/]", c.detail)
     return t
-
-
-def _clean(obj):
-    """JSON-safe: non-finite floats (a run that ended early has none to give) as null."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    return obj
-
-
-def _worst(values) -> float | None:
-    vals = [v for v in values if v is not None and math.isfinite(v)]
-    return max(vals) if vals else None
-
-
-def _run_or_abort(fn, specs, workers: int, done):
-    """The runs in ``workers`` processes; None after Ctrl-C (the command exits 130)."""
-    try:
-        return run_all(fn, specs, workers=workers, done=done)
-    except KeyboardInterrupt:
-        print("aborted", file=sys.stderr)
-        return None
-
-
-def _seeds(args) -> list[int]:
-    return list(range(args.seed, args.seed + args.seeds))
 
 
 # ---------------------------------------------------------------------------- alignment
@@ -138,87 +113,40 @@ def _alignment_tables(runs: dict[str, list[al.AlignmentRun]]) -> list[Table]:
     return tables
 
 
-def _alignment_json(runs, checks, figures, wall_s, args) -> dict:
-    configs = {}
-    for cfg, rs in sorted(runs.items()):
-        entry = {"max_rel_mm": {a: _worst(r.max_rel_mm[a] for r in rs) for a in "xyz"},
-                 "rms_rel_mm": {a: _worst(r.rms_rel_mm[a] for r in rs) for a in "xyz"}}
-        if len(rs) == 1:
-            entry.update(rs[0].to_dict())
-        else:
-            entry["population"] = al.population_summary(rs)
-            entry["runs"] = [r.to_dict() for r in rs]
-        configs[cfg] = entry
-    return {
-        "experiment": "alignment", "seeds": _seeds(args), "configs": configs,
-        "definitions": {
-            "relative_distance": "(file tip - orifice) minus its value at the square's start, "
-                                 "base-frame x, y, z (mm); max of |.| and RMS over the square "
-                                 "and the tail; with a population, max_rel_mm is the worst case",
-            "detachment": f"the tip more than {al.DETACH_START_MM} mm out of its seated "
-                          "position along the file axis (at the square's start), until back "
-                          f"within {al.DETACH_END_MM} mm; recovery_s from the peak",
-            "expected_ripple_mm": "admittance law: 15 mm x (1 - k fz_max / (b3 v))",
-        },
-        "thesis": al.THESIS, "checks": [c.to_dict() for c in checks],
-        "figures": [str(p) for p in figures], "wall_s": wall_s,
-    }
+def _abort() -> int:
+    print("aborted", file=sys.stderr)
+    return 130
 
 
 def cmd_alignment(args: argparse.Namespace) -> int:
-    configs = list(al.CONFIGS) if args.config == "all" else [args.config]
-    seeds = _seeds(args)
-    console = None if args.quiet else Console(file=sys.stderr)
-    specs = [al.AlignmentSpec(config=c, seed=s, speeds_mm_s=args.speeds,
-                              patient=None if len(seeds) == 1 else al.variation(s),
-                              keep_series=not args.no_figures and s == seeds[0])
-             for c in configs for s in seeds]
-    started = time.perf_counter()
-
-    def done(spec, run) -> None:
-        _progress(console, f"config {spec.config} seed {spec.seed}: {run.status}, max |x| "
-                           f"{run.max_rel_mm['x']:.2f} mm, peak out {run.max_out_mm:.2f} mm "
-                           f"({run.wall_s:.0f} s)")
-
-    results = _run_or_abort(al.run_alignment, specs, args.workers, done)
-    if results is None:
-        return 130
-    wall = time.perf_counter() - started
-    runs: dict[str, list[al.AlignmentRun]] = {}
-    for r in results:
-        runs.setdefault(r.spec.config, []).append(r)
-    figures = []
-    if not args.no_figures:
-        from dentibot.experiments.figures import alignment_figures, ripple_figure
-
-        out = Path(args.out or "runs/experiments/alignment")
-        for rs in runs.values():
-            figures += alignment_figures(rs[0], out)
-        rip = ripple_figure(runs, out)
-        if rip is not None:
-            figures.append(rip)
-    checks = al.checks(runs)
+    try:
+        result = res.alignment_experiment(
+            config=args.config, speeds=args.speeds, seeds=args.seeds, seed=args.seed,
+            workers=args.workers, out=args.out, no_figures=args.no_figures,
+            progress=_progress(args))
+    except KeyboardInterrupt:
+        return _abort()
     if args.json:
-        print(json.dumps(_clean(_alignment_json(runs, checks, figures, wall, args)), indent=1))
+        print(json.dumps(result.to_dict(), indent=1))
     else:
         con = _console()
-        for t in _alignment_tables(runs):
+        for t in _alignment_tables(result.by_config):
             con.print(t)
         con.print(f"detachment: the tip more than {al.DETACH_START_MM} mm out of its seated "
                   f"position along the file axis, until back within {al.DETACH_END_MM} mm; "
                   "recovery counted from the peak. law: what the admittance law predicts "
                   "(15 mm x (1 - k fz_max / (b3 v))). Thesis: X, Y within about 3 mm; config C "
                   "about 5 mm at 6 mm/s, back within about 5 s.")
-        for r in results:
+        for r in result.runs:
             if r.status != "ok":
                 con.print(f"[red]config {r.spec.config} seed {r.spec.seed}: {r.status}[/] "
                           f"{r.reason}")
-        con.print(_checks_table(checks))
-        for p in figures:
+        con.print(_checks_table(result.checks))
+        for p in result.figures:
             con.print(f"wrote {p}")
-        con.print(f"{len(results)} runs of {specs[0].duration_s:.0f} s simulated in "
-                  f"{wall:.1f} s ({args.workers} workers)")
-    return 0 if all(c.passed for c in checks) else 1
+        con.print(f"{len(result.runs)} runs of {result.runs[0].spec.duration_s:.0f} s "
+                  f"simulated in {result.wall_s:.1f} s ({args.workers} workers)")
+    return 0 if result.passed else 1
 
 
 # ---------------------------------------------------------------------------- preclinical
@@ -275,149 +203,81 @@ def _preclinical_tables(runs: list[pc.PhantomRun]) -> list[Table]:
     return [t]
 
 
-def _preclinical_json(runs, checks, figures, wall_s, args) -> dict:
-    members = sorted({r.spec.phantom.member for r in runs})
-    spec = runs[0].spec
-    out = {"experiment": "preclinical", "strategy": spec.strategy,
-           "rounds_s": list(spec.rounds_s), "seeds": members, "material": spec.material,
-           "torque_limit_mnm": pc.torque_limit_of(spec)}
-    if len(members) == 1:
-        out["phantoms"] = [r.to_dict() for r in runs]
-        out["means"] = {f"{k:g}": v for k, v in pc.group_means(runs).items()}
-    else:
-        p = pc.population_summary(runs)
-        out["phantoms"] = [{"name": e["name"], "tau_d": e["tau_d"],
-                            "completeness": e["completeness"]["median"],
-                            "completeness_worst": e["completeness"]["worst"],
-                            "fracture": e["fractures"] > 0, **e} for e in p["phantoms"]]
-        out["population"] = {k: v for k, v in p.items() if k != "phantoms"}
-        out["runs"] = [r.to_dict() for r in runs]
-    out.update({
-        "definitions": {
-            "red_mm2": "red-stained canal as a photograph across it shows it, to the working "
-                       "length (Table 6.5 counts the pixels of such photographs)",
-            "shaping": "removed fraction of the volume between the initial lumen and the "
-                       "target #25/.06 shape, 0..1",
-            "completeness": "eq 6.1, (red before - red after) / red before, 0..1",
-            "peak_torque_mnm": "largest true file torque (simulator), strength 62 mNm",
-            "stalled_s": f"feeding before first reaching the working length while the deepest "
-                         f"point gained < {pc.STALL_GAIN_MM} mm in {pc.STALL_WINDOW_S:g} s",
-        },
-        "thesis": {"table_6_5": {k: {"red_before_px": v[0], "red_after_px": v[1],
-                                     "completeness": v[2], "fracture": v[3]}
-                                 for k, v in pc.THESIS_TABLE_6_5.items()},
-                   "means": {f"{k:g}": v for k, v in pc.THESIS_MEANS.items()}},
-        "checks": [c.to_dict() for c in checks],
-        "figures": [str(p) for p in figures], "wall_s": wall_s})
-    return out
-
-
-def _numbers(text: str, what: str, hi: float) -> tuple[float, ...]:
+def _numbers(text: str, check: Callable[[tuple[float, ...]], tuple[float, ...]],
+             what: str) -> tuple[float, ...]:
     try:
         vals = tuple(float(x) for x in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r}: {what} separated by commas") from None
-    if not vals or any(not (0.0 < v <= hi) for v in vals):
-        raise argparse.ArgumentTypeError(f"{text!r}: each 0 < {what} <= {hi:g}")
-    return vals
+    try:
+        return check(vals)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(f"{text!r}: {exc.limit}") from None
 
 
 def _torque_limit(text: str) -> float:
-    v = _numbers(text, "mNm", FILE_STRENGTH_MNM)
+    v = _numbers(text, lambda vals: tuple(res.torque_limit_of(x) for x in vals), "mNm")
     if len(v) != 1:
         raise argparse.ArgumentTypeError(f"{text!r}: one number of mNm")
     return v[0]
 
 
 def _rounds(text: str) -> tuple[float, ...]:
-    return _numbers(text, "seconds", 3600.0)
+    return _numbers(text, res.rounds_of, "seconds")
 
 
 def _speeds(text: str) -> tuple[float, ...]:
-    return _numbers(text, "mm/s", 20.0)
+    return _numbers(text, res.speeds_of, "mm/s")
 
 
 def cmd_preclinical(args: argparse.Namespace) -> int:
-    names = pc.NAMES if args.phantom == "all" else tuple(args.phantom)
-    bad = [n for n in names if n not in pc.NAMES]
-    if bad:
-        print(f"dentibot experiment preclinical: phantom {''.join(bad)!r}: letters of "
-              f"{''.join(pc.NAMES)} or 'all'", file=sys.stderr)
+    try:
+        result = res.preclinical_experiment(
+            strategy=args.strategy, material=args.material, torque_limit=args.torque_limit,
+            phantom=args.phantom, rounds=args.rounds, seeds=args.seeds, seed=args.seed,
+            workers=args.workers, out=args.out, no_figures=args.no_figures,
+            progress=_progress(args))
+    except ConfigError as exc:
+        print(f"dentibot experiment preclinical: {exc.field} {exc.value!r}: {exc.limit}",
+              file=sys.stderr)
         return 2
-    seeds = _seeds(args)
-    console = None if args.quiet else Console(file=sys.stderr)
-    strategies = pc.STRATEGIES if args.strategy == "all" else (args.strategy,)
-    specs = [pc.PreclinicalSpec(p, strategy=st, rounds_s=args.rounds, material=args.material,
-                                torque_limit_mnm=(pc.default_torque_limit(st)
-                                                  if args.torque_limit is None
-                                                  else args.torque_limit),
-                                keep_trace=not args.no_figures and s == seeds[0])
-             for st in strategies for s in seeds for p in pc.phantoms(s, names)]
-    started = time.perf_counter()
-
-    def done(spec, run) -> None:
-        p = spec.phantom
-        _progress(console, f"{spec.strategy}: phantom {p.name} ({p.describe()}, tau_d "
-                           f"{p.tau_d_mnm:g}) seed {p.member}: {100 * run.completeness:.2f} %, "
-                           f"{'fracture' if run.fracture else 'no fracture'}, peak "
-                           f"{run.peak_torque_mnm:.1f} mNm ({run.wall_s:.0f} s)")
-
-    runs = _run_or_abort(pc.run_phantom, specs, args.workers, done)
-    if runs is None:
-        return 130
-    wall = time.perf_counter() - started
-    by = {st: [r for r in runs if r.spec.strategy == st] for st in strategies}
-    figures = []
-    if not args.no_figures:
-        from dentibot.experiments.figures import preclinical_figures
-
-        for st, rs in by.items():
-            first = [r for r in rs if r.spec.phantom.member == seeds[0]]
-            figures += preclinical_figures(first, Path(args.out or "runs/experiments")
-                                           / f"preclinical-{st}")
-    checks = (pc.checks(by["automated"]) if "automated" in by else []) + pc.ablation_checks(by)
+    except KeyboardInterrupt:
+        return _abort()
     if args.json:
-        if len(by) == 1:
-            out = _preclinical_json(runs, checks, figures, wall, args)
-        else:
-            out = {"experiment": "preclinical", "strategy": "all",
-                   "strategies": {st: _preclinical_json(rs, [], [], None, args)
-                                  for st, rs in by.items()},
-                   "checks": [c.to_dict() for c in checks],
-                   "figures": [str(p) for p in figures], "wall_s": wall}
-        print(json.dumps(_clean(out), indent=1))
-    else:
-        con = _console()
-        for rs in by.values():
-            for t in _preclinical_tables(rs):
-                con.print(t)
-        if len(by) > 1:
-            con.print(_strategy_table(by))
-        con.print("canal: tilt deg, or curve angle deg / radius mm @ start depth mm. red: the "
-                  "red-stained canal as a photograph across it shows it (Table 6.5 counts its "
-                  "pixels, so compare completeness). shaped: how much of the volume between "
-                  "the initial lumen and the target #25/.06 shape was cut. "
-                  f"stalled: feeding without gaining {pc.STALL_GAIN_MM} mm of new depth in "
-                  f"{pc.STALL_WINDOW_S:g} s before first reaching the working length. fatigue: "
-                  "Miner sum (1 = fatigue fracture). reversals (limit): all reversals (those the "
-                  "runtime's hard torque limit forced, whatever the strategy). Phantom "
-                  f"material: {args.material}. Hard torque limit: "
-                  + ", ".join(f"{st} {_limit_text(rs[0].spec)}"
-                              for st, rs in by.items()) + ".")
-        if args.strategy not in ("automated", "all"):
-            con.print("An ablation's figures mean most beside the automated algorithm's: "
-                      "--strategy all runs the four strategies on the same phantoms.")
-        for r in runs:
-            if r.status not in ("ok", "fracture"):
-                con.print(f"[red]{r.spec.strategy}: phantom {r.name} seed "
-                          f"{r.spec.phantom.member}: {r.status}[/] {r.reason}")
-        if checks:
-            con.print(_checks_table(checks))
-        for p in figures:
-            con.print(f"wrote {p}")
-        con.print(f"{len(runs)} runs of {sum(args.rounds):g} s simulated in {wall:.1f} s "
-                  f"({args.workers} workers)")
-    return 0 if all(c.passed for c in checks) else 1
+        print(json.dumps(result.to_dict(), indent=1))
+        return 0 if result.passed else 1
+    by = result.by_strategy
+    con = _console()
+    for rs in by.values():
+        for t in _preclinical_tables(rs):
+            con.print(t)
+    if len(by) > 1:
+        con.print(_strategy_table(by))
+    con.print("canal: tilt deg, or curve angle deg / radius mm @ start depth mm. red: the "
+              "red-stained canal as a photograph across it shows it (Table 6.5 counts its "
+              "pixels, so compare completeness). shaped: how much of the volume between "
+              "the initial lumen and the target #25/.06 shape was cut. "
+              f"stalled: feeding without gaining {pc.STALL_GAIN_MM} mm of new depth in "
+              f"{pc.STALL_WINDOW_S:g} s before first reaching the working length. fatigue: "
+              "Miner sum (1 = fatigue fracture). reversals (limit): all reversals (those the "
+              "runtime's hard torque limit forced, whatever the strategy). Phantom "
+              f"material: {args.material}. Hard torque limit: "
+              + ", ".join(f"{st} {_limit_text(rs[0].spec)}"
+                          for st, rs in by.items()) + ".")
+    if args.strategy not in ("automated", "all"):
+        con.print("An ablation's figures mean most beside the automated algorithm's: "
+                  "--strategy all runs the four strategies on the same phantoms.")
+    for r in result.runs:
+        if r.status not in ("ok", "fracture"):
+            con.print(f"[red]{r.spec.strategy}: phantom {r.name} seed "
+                      f"{r.spec.phantom.member}: {r.status}[/] {r.reason}")
+    if result.checks:
+        con.print(_checks_table(result.checks))
+    for p in result.figures:
+        con.print(f"wrote {p}")
+    con.print(f"{len(result.runs)} runs of {sum(args.rounds):g} s simulated in "
+              f"{result.wall_s:.1f} s ({args.workers} workers)")
+    return 0 if result.passed else 1
 
 
 def _limit_text(spec: pc.PreclinicalSpec) -> str:

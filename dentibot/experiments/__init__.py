@@ -5,5 +5,9 @@
 - :mod:`~dentibot.experiments.preclinical`: experiment 2, pre-clinical evaluation on six
   phantoms A-F (Table 6.5), with the drilling strategy as an ablation switch.
 
-``dentibot experiment alignment|preclinical`` runs them (:mod:`dentibot.cli.experiment`).
+- :mod:`~dentibot.experiments.results`: an experiment end to end (runs, figures, the
+  thesis's claims checked) and its machine-readable result.
+
+``dentibot experiment alignment|preclinical`` runs them (:mod:`dentibot.cli.experiment`), and
+so does :func:`dentibot.api.run_experiment`.
 """

@@ -17,8 +17,10 @@ import math
 import multiprocessing
 import os
 import sys
+import threading
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from contextvars import ContextVar
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -29,6 +31,11 @@ from dentibot.protocol.schema import Protocol
 
 S = TypeVar("S")
 R = TypeVar("R")
+
+#: The ``cancel`` of the :func:`run_all` running runs in this thread: :func:`run_protocol`
+#: stops its run safely once it is set.
+_CANCEL: ContextVar[threading.Event | None] = ContextVar("dentibot_run_all_cancel",
+                                                         default=None)
 
 
 def quiet_logs() -> None:
@@ -43,21 +50,31 @@ def default_workers() -> int:
 
 
 def run_all(fn: Callable[[S], R], specs: Sequence[S], workers: int = 1,
-            done: Callable[[S, R], None] | None = None) -> list[R]:
+            done: Callable[[S, R], None] | None = None,
+            cancel: threading.Event | None = None) -> list[R]:
     """``[fn(s) for s in specs]``, in ``workers`` local processes when ``workers > 1``.
 
     ``fn`` must be a module-level function (it is pickled by name). ``done(spec, result)`` is
     called in this process as each run finishes (progress display). Results are in the order
     of ``specs``. An exception in a run (or Ctrl-C) cancels the runs not started yet.
+    ``cancel``: once set (from another thread), KeyboardInterrupt as after Ctrl-C; a run in
+    this process (``workers == 1``) first stops safely after its current tick, runs in worker
+    processes finish first.
     """
     specs = list(specs)
     workers = max(1, min(int(workers), len(specs)))
     results: list[Any] = [None] * len(specs)
     if workers == 1:
-        for i, s in enumerate(specs):
-            results[i] = fn(s)
-            if done is not None:
-                done(s, results[i])
+        token = _CANCEL.set(cancel)
+        try:
+            for i, s in enumerate(specs):
+                _raise_if_set(cancel)
+                results[i] = fn(s)
+                _raise_if_set(cancel)
+                if done is not None:
+                    done(s, results[i])
+        finally:
+            _CANCEL.reset(token)
         return results
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
@@ -66,7 +83,9 @@ def run_all(fn: Callable[[S], R], specs: Sequence[S], workers: int = 1,
         pending = set(futures)
         try:
             while pending:
-                finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                finished, pending = wait(pending, timeout=None if cancel is None else 0.1,
+                                         return_when=FIRST_COMPLETED)
+                _raise_if_set(cancel)
                 for f in finished:
                     i = futures[f]
                     results[i] = f.result()
@@ -76,6 +95,11 @@ def run_all(fn: Callable[[S], R], specs: Sequence[S], workers: int = 1,
             pool.shutdown(wait=True, cancel_futures=True)
             raise
     return results
+
+
+def _raise_if_set(cancel: threading.Event | None) -> None:
+    if cancel is not None and cancel.is_set():
+        raise KeyboardInterrupt("cancelled")
 
 
 def run_protocol(protocol: Protocol, tap: Callable[[dict, ProtocolRunner], None],
@@ -91,7 +115,15 @@ def run_protocol(protocol: Protocol, tap: Callable[[dict, ProtocolRunner], None]
     time): the result's summary then carries the status and its reason, the figures come from
     the tap. ``limit_share``: see :class:`~dentibot.app.runner.ProtocolRunner`.
     """
-    runner = ProtocolRunner(protocol, no_record=True, tap=lambda row: tap(row, runner),
+    cancel = _CANCEL.get()
+
+    def each(row: dict) -> None:
+        tap(row, runner)
+        if cancel.is_set():
+            runner.abort("cancelled")
+
+    runner = ProtocolRunner(protocol, no_record=True,
+                            tap=(lambda row: tap(row, runner)) if cancel is None else each,
                             live_summary=feed_summary,
                             **({} if limit_share is None else {"limit_share": limit_share}))
     if prepare is not None:

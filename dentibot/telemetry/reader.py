@@ -16,6 +16,10 @@ recorder stores an unknown value (:mod:`dentibot.telemetry.schema`), so a row re
 the row recorded, None values included. Recordings written with explicit ``null`` values read
 the same way. Everything is read by procedure time ``t``; the messages' log times (wall clock)
 are not needed. Other channels (the 3D topics ``/tf`` and ``/scene``) are skipped.
+
+:func:`read_table` reads the same messages into typed Arrow tables (one column per field,
+None as null) for notebooks and data analysis; ``to_pandas()`` needs pandas
+(``pip install 'dentibot[notebook]'``).
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import structlog
@@ -34,9 +38,21 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import MCAP0_MAGIC
 
 from dentibot.errors import ConfigError
-from dentibot.telemetry.schema import TICK_FIELDS, TOPICS, TelemetryError, none_fields
+from dentibot.telemetry.schema import (
+    EVENT_FIELDS,
+    TICK_FIELDS,
+    TOPICS,
+    Field,
+    TelemetryError,
+    none_fields,
+)
 
-__all__ = ["RECOVERY_METADATA_NAME", "MessageStream", "Recording", "read_recording"]
+if TYPE_CHECKING:
+    import pandas
+    import pyarrow
+
+__all__ = ["RECOVERY_METADATA_NAME", "MessageStream", "Recording", "RecordingTables",
+           "arrow_schema", "read_recording", "read_table"]
 
 TOPIC_NAMES = frozenset(TOPICS)
 
@@ -215,3 +231,108 @@ _TOPIC_HANDLERS = {
     "/events": lambda rec, obj: rec.events.append(obj),
     "/run/end": _set_end,
 }
+
+
+# ---------------------------------------------------------------------------- Arrow tables
+def arrow_schema(fields: tuple[Field, ...] = TICK_FIELDS) -> pyarrow.Schema:
+    """The Arrow schema of a topic's table: one column per field, in order, every column
+    nullable; each column's metadata holds its ``unit`` and ``description``.
+
+    number -> float64, integer -> int64, boolean -> bool, string -> string; a fixed-size
+    array (``q_deg``, ``wrench_h``...) -> fixed_size_list<float64>[n]; a list of any length
+    (``events``) -> list<string>; an object (``devices``) -> map<string, string>.
+    """
+    import pyarrow as pa
+
+    scalar = {"number": pa.float64(), "integer": pa.int64(), "boolean": pa.bool_(),
+              "string": pa.string()}
+
+    def arrow_type(f: Field) -> pyarrow.DataType:
+        item = scalar[f.json_type]
+        if f.length is None:
+            return item
+        if f.length == -1:
+            return pa.map_(pa.string(), item)
+        return pa.list_(item, f.length) if f.length > 0 else pa.list_(item)
+
+    return pa.schema([pa.field(f.name, arrow_type(f), nullable=True,
+                               metadata={"unit": f.unit, "description": f.description})
+                      for f in fields])
+
+
+def _table(path: Path, columns: dict[str, list], fields: tuple[Field, ...]) -> pyarrow.Table:
+    import pyarrow as pa
+
+    schema = arrow_schema(fields)
+    arrays = []
+    for f in schema:
+        try:
+            arrays.append(pa.array(columns[f.name], type=f.type))
+        except (pa.ArrowInvalid, pa.ArrowTypeError, TypeError, ValueError) as exc:
+            raise TelemetryError(path, f"field {f.name!r}: a value does not fit {f.type} "
+                                       f"({exc})") from exc
+    return pa.Table.from_arrays(arrays, schema=schema)
+
+
+@dataclass
+class RecordingTables:
+    """A recording as Arrow tables (:func:`read_table`).
+
+    ``ticks``: the ``/tick`` rows, one typed column per tick field (:func:`arrow_schema`),
+    one row per control tick in file order; ``events``: the ``/events`` messages (t, tick,
+    kind, detail); ``metadata``, ``end``, ``complete``, ``recovered``, ``problems``: as in
+    :class:`Recording`.
+    """
+
+    path: Path
+    ticks: pyarrow.Table
+    events: pyarrow.Table
+    metadata: dict[str, Any] = field(default_factory=dict)
+    end: dict[str, Any] | None = None
+    complete: bool = False
+    recovered: dict[str, str] | None = None
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def status(self) -> str | None:
+        """``/run/end`` status, or None when the run has no end record (crash, still running)."""
+        return None if self.end is None else self.end.get("status")
+
+    def to_pandas(self) -> pandas.DataFrame:
+        """``ticks`` as a pandas DataFrame (fixed-size arrays as numpy arrays per cell).
+        Raises ImportError when pandas is missing: it comes with ``dentibot[notebook]``."""
+        try:
+            import pandas  # noqa: F401
+        except ImportError as exc:
+            raise ImportError("to_pandas() needs pandas, which comes with the notebook extra: "
+                              "pip install 'dentibot[notebook]'") from exc
+        return self.ticks.to_pandas()
+
+
+def read_table(path: str | os.PathLike[str]) -> RecordingTables:
+    """Read ``path`` into Arrow tables, streamed (no per-row dicts are kept); tolerant of a
+    truncated or still-growing file like :func:`read_recording` (``complete=False``).
+
+    Raises TelemetryError if the file is missing, unreadable or not an MCAP file, or a value
+    does not fit its field's type.
+    """
+    stream = MessageStream(path)
+    ticks: dict[str, list] = {f.name: [] for f in TICK_FIELDS}
+    events: dict[str, list] = {f.name: [] for f in EVENT_FIELDS}
+    once: dict[str, Any] = {"/run": {}, "/run/end": None}      # the /run and /run/end records
+    skipped = 0
+    for topic, obj in stream:
+        if topic in once:
+            once[topic] = obj if isinstance(obj, dict) else {"value": obj}
+        elif not isinstance(obj, dict):
+            skipped += 1
+        else:
+            for name, values in (ticks if topic == "/tick" else events).items():
+                values.append(obj.get(name))
+    problems = stream.problems + ([f"{skipped} /tick or /events messages are not JSON "
+                                   "objects (left out)"] if skipped else [])
+    return RecordingTables(
+        path=stream.path, ticks=_table(stream.path, ticks, TICK_FIELDS),
+        events=_table(stream.path, events, EVENT_FIELDS), metadata=once["/run"],
+        end=once["/run/end"], complete=stream.complete, recovered=stream.recovered,
+        problems=problems)
