@@ -66,3 +66,15 @@ def test_sim_serve_help_shows_its_port_defaults(capsys):
         main(["sim", "serve", "--help"])
     out = capsys.readouterr().out
     assert "default: 10000" in out and "default: 49152" in out and "default: 5020" in out
+
+
+def test_fk_json_gives_the_home_pose_in_mm_and_deg(capsys):
+    import json
+
+    assert main(["fk", "0", "0", "0", "0", "0", "0", "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    # the Meca500's zero pose (maker's documentation): flange at (190, 0, 308) mm, beta 90 deg
+    assert d["flange_pose"] == pytest.approx({"x_mm": 190.0, "y_mm": 0.0, "z_mm": 308.0,
+                                              "alpha_deg": 0.0, "beta_deg": 90.0,
+                                              "gamma_deg": 0.0}, abs=1e-9)
+    assert d["joints_deg"] == [0.0] * 6

@@ -8,6 +8,7 @@ file, not an MCAP file, output exists without ``--force``).
 from __future__ import annotations
 
 import argparse
+import json
 
 from dentibot.cli.common import user_errors
 
@@ -17,6 +18,9 @@ def cmd_recover(args: argparse.Namespace) -> int:
     from dentibot.telemetry.recover import recover_recording
 
     r = recover_recording(args.recording, args.out, force=args.force, rewrite=args.rewrite)
+    if args.json:
+        print(json.dumps(r.to_dict(), indent=2))
+        return 0
     if r.intact and r.out is None:
         extra = ""
         if r.recovered_before is not None:
@@ -61,4 +65,6 @@ def add_parser(sub) -> None:
     recover.add_argument("--force", action="store_true", help="replace --out if it exists")
     recover.add_argument("--rewrite", action="store_true",
                          help="write a copy even when the recording is intact")
+    recover.add_argument("--json", action="store_true",
+                         help="print what was found and written as one JSON object")
     recover.set_defaults(func=cmd_recover)

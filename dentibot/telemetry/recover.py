@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import orjson
@@ -81,6 +81,14 @@ class RecoveryResult:
     def seconds(self) -> float | None:
         """Procedure time saved: ticks x period (None without a rate)."""
         return self.ticks / self.rate_hz if self.rate_hz else None
+
+    def to_dict(self) -> dict:
+        """Every field, paths as strings, plus ``seconds`` (``dentibot recover --json``)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out["source"] = str(self.source)
+        out["out"] = None if self.out is None else str(self.out)
+        out["seconds"] = self.seconds
+        return out
 
 
 def default_output(source: str | os.PathLike[str]) -> Path:

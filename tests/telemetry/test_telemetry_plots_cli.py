@@ -83,6 +83,16 @@ def test_cli_plot(hardware_recording, tmp_path, capsys):
     assert len(list(out_dir.glob("*.png"))) == len(FIGURES) - 1
 
 
+def test_cli_plot_json(hardware_recording, tmp_path, capsys):
+    out_dir = tmp_path / "out"
+    assert main(["plot", str(hardware_recording), "--out", str(out_dir), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert sorted(d["written"]) == sorted(str(p) for p in out_dir.glob("*.png"))
+    assert len(d["written"]) == len(FIGURES) - 1
+    assert list(d["skipped"]) == ["position_vs_root"] and "phantom" in d["skipped"][
+        "position_vs_root"]
+
+
 @pytest.mark.parametrize("command", ["report", "plot"])
 def test_cli_errors_exit_2_with_a_message(command, tmp_path, capsys):
     extra = ["--out", str(tmp_path)] if command == "plot" else []

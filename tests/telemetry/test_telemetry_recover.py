@@ -184,3 +184,20 @@ def test_bad_input_exits_2_naming_the_file(tmp_path, capsys):
     err = capsys.readouterr().err
     assert str(stub) in err and "no complete header" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["junk.mcap", "stub.mcap"]
+
+
+def test_recover_json_reports_what_was_saved(tmp_path, capsys):
+    import json
+
+    raw, ends = _finished()
+    k = len(ends) // 2
+    src = tmp_path / "cut.mcap"
+    src.write_bytes(raw[:ends[k][0]])                      # cut right after a chunk
+    out = tmp_path / "out.mcap"
+    assert main(["recover", str(src), "--out", str(out), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["source"] == str(src) and d["out"] == str(out)
+    assert d["intact"] is False and d["has_end"] is False
+    assert (d["messages"], d["ticks"]) == (ends[k][1], ends[k][2])
+    assert d["first_tick"] == 0 and d["last_tick"] == ends[k][2] - 1
+    assert d["seconds"] == pytest.approx(d["ticks"] / d["rate_hz"])
