@@ -12,6 +12,11 @@ process is running beside it):
 - ``lockstep``: a 300 s drilling round (30 s with --quick) of the main job with controller and
   world together, without telemetry, with rows built, with the MCAP recorder: simulated
   seconds per wall second (``lockstep.py``); ``--profile`` adds a cProfile breakdown;
+- ``tick``: the real lock-step tick, as ``dentibot run`` runs the main job (the protocol
+  runner with the live summary and the MCAP recorder): its drill step timed whole with the
+  recorder and without it (interleaved, repeated), and broken down by component
+  (``real_tick.py``). The drill step drills the protocol's rounds, or one round of the
+  lock-step round's length when that is shorter (--quick);
 - ``recording``: MCAP recorder throughput on real rows, file size per minute at 500 Hz
   (``recording_speed.py``);
 - ``realtime``: the control task at 500 Hz and 1 kHz for 60 s each (10 s with --quick)
@@ -40,12 +45,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import control_tick
 import lockstep
+import real_tick
 import realtime_loop
 import recording_speed
 import world_step
 from benchutil import fmt, load_average, machine
 
-SECTIONS = ("control", "world", "lockstep", "recording", "realtime")
+SECTIONS = ("control", "world", "lockstep", "tick", "recording", "realtime")
 
 #: The speed targets: (JSON key, comparison, bound).
 TARGETS = {
@@ -70,6 +76,7 @@ class Sizes:
     round_trips: int = 20
     rates: tuple[float, ...] = (500.0, 1000.0)
     profile_s: float = 20.0
+    tick_repeats: int = 3
 
 
 FULL = Sizes()
@@ -96,6 +103,12 @@ def collect(sizes: Sizes = FULL, sections=SECTIONS, profile: bool = False,
             f"{', then profiled' if profile else ''})")
         res["lockstep"] = lockstep.measure(sizes.lockstep_s,
                                            profile_seconds=sizes.profile_s if profile else None)
+    if "tick" in sections:
+        rounds = real_tick.drill_rounds_s()
+        tick_s = None if sizes.lockstep_s >= rounds else sizes.lockstep_s
+        say(f"real tick (the main job's drill step, {rounds if tick_s is None else tick_s:g} s "
+            f"simulated, recorder on and off x{sizes.tick_repeats}, then broken down)")
+        res["tick"] = real_tick.measure(tick_s, sizes.tick_repeats)
     if "recording" in sections:
         say(f"recording ({sizes.recording_rows} real rows)")
         res["recording"] = recording_speed.measure(sizes.recording_rows)
@@ -145,6 +158,15 @@ def flatten(res: dict) -> dict:
         if "recorder" in v:
             out["lockstep_speed_factor_recorder"] = v["recorder"]["speed_factor"]
             out["lockstep_recording_mb_per_min"] = v["recorder"]["bytes_per_min"] / 1e6
+    if "tick" in res:
+        tk = res["tick"]
+        out["cli_tick_us"] = tk["us_per_tick_recorder"]
+        out["cli_tick_us_no_recorder"] = tk["us_per_tick"]
+        out["cli_speed_factor"] = tk["speed_factor_recorder"]
+        out["cli_speed_factor_no_recorder"] = tk["speed_factor"]
+        out["cli_recorder_ratio"] = tk["recorder_ratio"]
+        out["cli_writer_cpu_us_per_tick"] = tk["writer_cpu_us_per_tick"]
+        out["lockstep_breakdown"] = tk.get("breakdown")
     if "recording" in res:
         first = res["recording"]["cases"][0]          # the protocol runner's setting
         out["recording_ticks_per_s"] = first["ticks_per_s"]
@@ -227,6 +249,21 @@ def print_table(res: dict, flat: dict) -> None:
                          f"{v['speed_factor']:.1f}x real time",
                          f"{v['us_per_tick']:.0f} us/tick{extra}",
                          _verdict(flat, "lockstep_speed_factor") if name == "none" else ""))
+    if "tick" in res:
+        tk = res["tick"]
+        what = ("protocol's rounds" if tk["drill_seconds"] is None
+                else f"{tk['drill_seconds']:g} s round")
+        rows.append((f"real tick, main job's drill step ({what}), CLI path", "",
+                     f"{tk['speed_factor_recorder']:.1f}x real time",
+                     (f"{tk['us_per_tick_recorder']:.0f} us/tick with the recorder, "
+                      f"{tk['us_per_tick']:.0f} without (x{tk['recorder_ratio']:.2f}); "
+                      f"writer thread {fmt(tk['writer_cpu_us_per_tick'], '.0f')} us CPU/tick"),
+                     ""))
+        b = tk.get("breakdown")
+        if b:
+            top = sorted(b.items(), key=lambda kv: -kv[1])
+            rows.append(("  by component, us/tick", "", f"{tk['breakdown_us_per_tick']:.0f} hooked",
+                         ", ".join(f"{k} {v:.0f}" for k, v in top if v >= 0.5), ""))
     if "recording" in res:
         for cse in res["recording"]["cases"]:
             rows.append(((f"recording ({cse['compression']}"

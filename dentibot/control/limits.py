@@ -120,8 +120,9 @@ class JointLimiter:
         out = [0.0] * 6
         guarded = []
         ratio = 0.0
+        qd = qdot.tolist() if type(qdot) is np.ndarray else [float(x) for x in qdot]
         for i in range(6):
-            w = float(qdot[i])
+            w = qd[i]
             qi = math.radians(q_deg[i])
             dist = max(self._hi_f[i] - qi if w > 0.0 else qi - self._lo_f[i], 0.0)
             vmax = self._vmax_f[i]

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from dentibot.control.kinematics import euler_xyz_deg
 from dentibot.runtime.estimate import Estimate
 from dentibot.states.behaviours import feed_force_n
@@ -17,7 +19,8 @@ def telemetry_row(rt, k: int, est: Estimate, qdot, events, lateness_s: float,
     row = {
         "t": k * rt.ts, "tick": k, "step": rt.step_name, "state": rt.treatment.state,
         "q_deg": est.q_deg.tolist(),
-        "qdot_cmd_deg_s": [0.0] * 6 if qdot is None else [float(x) for x in qdot],
+        "qdot_cmd_deg_s": [0.0] * 6 if qdot is None else (
+            qdot.tolist() if type(qdot) is np.ndarray else [float(x) for x in qdot]),
         "tool_pose": [*est.tip_0, *euler],
         "phantom_pose": None,
         "wrench_s": est.wrench_s.tolist(), "wrench_h": est.wrench_h.tolist(),

@@ -114,7 +114,8 @@ class Supervisor:
         self.lim = limits or SupervisorLimits()
         self.ts = ts
         self.freshness = Freshness(stale_periods)
-        self._last_force: np.ndarray | None = None
+        self._last_force: tuple[float, float, float] | None = None
+        self._joint_bounds: tuple | None = None       # (limits array, margin, lo, hi floats)
         self._disagree_ticks = 0
         olim = ObserverLimits()
         self.spindle = SpindleObserver(ts, olim)
@@ -154,9 +155,12 @@ class Supervisor:
                                f"F/T reading saturated (status 0x{w.status:x}): force "
                                f"{np.round(w.force_n, 2).tolist()} N, torque "
                                f"{np.round(w.torque_nm, 4).tolist()} N*m"))
-        force = np.array(w.force_n)
-        if self._last_force is not None:
-            jump = float(np.max(np.abs(force - self._last_force)))
+        # plain floats: three components do not pay numpy's per-call overhead (every tick)
+        force = tuple(float(x) for x in w.force_n)
+        last = self._last_force
+        if last is not None:
+            jump = max(abs(force[0] - last[0]), abs(force[1] - last[1]),
+                       abs(force[2] - last[2]))
             if jump > self.lim.ft_jump_n:
                 out.append(Finding("ft_jump", f"F/T force changed by {jump:.1f} N in one "
                                               f"sample (limit {self.lim.ft_jump_n} N)"))
@@ -198,9 +202,17 @@ class Supervisor:
                                    f"(box: {lim.workspace_lateral_mm} mm sideways, "
                                    f"-{lim.workspace_above_mm}..{working_length_mm + lim.workspace_past_wl_mm:.1f} mm)"))
         q = est.q_deg
-        lo, hi = kin_robot.joint_limits_deg[:, 0], kin_robot.joint_limits_deg[:, 1]
+        limits = kin_robot.joint_limits_deg
+        b = self._joint_bounds
+        if b is None or b[0] is not limits or b[1] != lim.joint_margin_deg:
+            b = self._joint_bounds = (limits, lim.joint_margin_deg,
+                                      [float(x) - lim.joint_margin_deg for x in limits[:, 0]],
+                                      [float(x) + lim.joint_margin_deg for x in limits[:, 1]])
+        q_lo, q_hi = b[2], b[3]
+        qf = q.tolist() if isinstance(q, np.ndarray) else [float(x) for x in q]
         for i in range(6):
-            if q[i] < lo[i] - lim.joint_margin_deg or q[i] > hi[i] + lim.joint_margin_deg:
+            if qf[i] < q_lo[i] or qf[i] > q_hi[i]:
+                lo, hi = limits[:, 0], limits[:, 1]
                 out.append(Finding("joint_range", f"J{i + 1} = {q[i]:.2f} deg outside "
                                                   f"{lo[i]:.0f}..{hi[i]:.0f} deg"))
         s = kin_robot.singularity(q, frames=frames)
@@ -214,6 +226,8 @@ class Supervisor:
 
     def check_command(self, qdot_deg_s, twist, speed_limits_deg_s) -> list[Finding]:
         out: list[Finding] = []
+        if isinstance(qdot_deg_s, np.ndarray):
+            qdot_deg_s = qdot_deg_s.tolist()
         for i in range(6):
             if abs(qdot_deg_s[i]) > speed_limits_deg_s[i] * (1.0 + 1e-9):
                 out.append(Finding("joint_speed", f"J{i + 1} commanded {qdot_deg_s[i]:.1f} "

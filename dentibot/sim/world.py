@@ -96,6 +96,8 @@ class World:
         self.fatigue_damage = 0.0
         self.interaction = Interaction()
         self.contact_force_0 = (0.0, 0.0, 0.0)   # net force of the canal on the file, {0}
+        self._completeness_key: tuple | None = None
+        self._completeness = 0.0
         self._tool_p = tuple(float(x) for x in cfg.tool[:3, 3])
         self._tool_z = tuple(float(x) for x in cfg.tool[:3, 2])
         self._pose_q = None
@@ -129,8 +131,8 @@ class World:
     def phantom_origin_0(self) -> tuple[float, float, float]:
         """Canal orifice (origin of {P}) in {0} now (mm), including patient motion."""
         off = self.motion.offset_mm(self.t)
-        pl = self.platform_mm
-        return tuple(self._pP[i] + off[i] + pl[i] for i in range(3))
+        pl, pp = self.platform_mm, self._pP
+        return (pp[0] + off[0] + pl[0], pp[1] + off[1] + pl[1], pp[2] + off[2] + pl[2])
 
     def to_phantom(self, v0, point: bool) -> tuple[float, float, float]:
         """A point (or a direction) from {0} to {P}."""
@@ -141,8 +143,10 @@ class World:
         return tuple(R[0][j] * v0[0] + R[1][j] * v0[1] + R[2][j] * v0[2] for j in range(3))
 
     def from_phantom(self, vp, point: bool) -> tuple[float, float, float]:
-        R = self._RP
-        v = tuple(R[i][0] * vp[0] + R[i][1] * vp[1] + R[i][2] * vp[2] for i in range(3))
+        r0, r1, r2 = self._RP
+        v = (r0[0] * vp[0] + r0[1] * vp[1] + r0[2] * vp[2],
+             r1[0] * vp[0] + r1[1] * vp[1] + r1[2] * vp[2],
+             r2[0] * vp[0] + r2[1] * vp[1] + r2[2] * vp[2])
         if point:
             o = self.phantom_origin_0()
             v = (v[0] + o[0], v[1] + o[1], v[2] + o[2])
@@ -282,5 +286,11 @@ class World:
         return np.array(self._R06)
 
     def completeness(self) -> float:
-        """Eq 6.1 for the phantom's canal, in [0, 1]."""
-        return self.canal.completeness()
+        """Eq 6.1 for the phantom's canal, in [0, 1]: :meth:`Canal.completeness`, computed
+        again only when the file has cut the lumen since (the telemetry asks every tick)."""
+        canal = self.canal
+        key = (canal, canal.version)
+        if key != self._completeness_key:
+            self._completeness = canal.completeness()
+            self._completeness_key = key
+        return self._completeness

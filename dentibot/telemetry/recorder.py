@@ -682,7 +682,9 @@ class McapRecorder:
             data = orjson.dumps(obj, default=_json_default, option=_ORJSON_OPTIONS)
         except TypeError:                         # beyond orjson: big ints, odd keys, objects
             return self._encode_std(obj, what)
-        if _nonfinite(obj):                       # orjson wrote null: leave the field out
+        # orjson writes NaN and infinities as null, and the Nones are left out already: no
+        # "null" in the text, nothing non-finite (the exact look only when there is one)
+        if b"null" in data and _nonfinite(obj):  # orjson wrote null: leave the field out
             self._count_nonfinite(what)
             data = orjson.dumps(_without_none(_finite(obj)), default=_json_default,
                                 option=_ORJSON_OPTIONS)

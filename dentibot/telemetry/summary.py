@@ -99,6 +99,8 @@ class RunSummary(Figures):
 
 def _num(value: Any) -> float | None:
     """A finite number as float, anything else (None, NaN, bool, text) as None."""
+    if type(value) is float:                    # the rows' case, first and cheapest
+        return value if value - value == 0.0 else None    # inf - inf and nan are nan
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return None
     value = float(value)
@@ -173,7 +175,7 @@ class _Figures:
         }
 
 
-@dataclass
+@dataclass(slots=True)
 class _Tick:
     """What one row contributes, after the edges and increments are worked out."""
 

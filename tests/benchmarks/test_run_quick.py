@@ -125,3 +125,24 @@ def test_the_table_prints(results, capsys):
     for figure in ("control tick", "world step", "lock-step", "500 Hz lateness", "recording",
                    "round trips"):
         assert figure in out
+
+
+def test_the_real_tick_is_timed_with_and_without_the_recorder_and_broken_down(results):
+    _, res, flat = results
+    tk = res["tick"]
+    assert tk["drill_seconds"] == TINY["lockstep_s"]       # shorter than the protocol's rounds
+    for key in ("cli_tick_us", "cli_tick_us_no_recorder", "cli_speed_factor",
+                "cli_speed_factor_no_recorder", "cli_recorder_ratio"):
+        assert isinstance(flat[key], float) and flat[key] > 0.0, key
+    assert flat["cli_speed_factor"] == pytest.approx(
+        tk["ticks"] * 0.002 / (flat["cli_tick_us"] * tk["ticks"] / 1e6))
+    assert len(tk["recorder_ratios"]) == 3
+    for run in tk["runs"]["recorder"] + tk["runs"]["no_recorder"]:
+        assert run["status"] == "ok" and run["ticks"] > TINY["lockstep_s"] * 500
+    b = flat["lockstep_breakdown"]
+    assert set(b) >= {"world_step", "control", "supervisor", "telemetry_row", "sim_truth",
+                      "live_summary", "recorder_record", "glue"}
+    assert b["world_step"] > 0.0 and b["control"] > 0.0
+    # the components and the glue add up to the hooked run's tick
+    assert sum(b.values()) == pytest.approx(tk["breakdown_us_per_tick"], rel=1e-6) or \
+        b["glue"] == 0.0

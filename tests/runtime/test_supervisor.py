@@ -102,3 +102,11 @@ def test_command_caps():
     assert kinds(s.check_command([0, 0, 181, 0, 0, 0], np.zeros(6), limits)) == ["joint_speed"]
     assert kinds(s.check_command([0] * 6, np.array([30.0, 40.0, 0.1, 0, 0, 0]), limits)) == \
         ["tip_speed"]                                      # |(30, 40, 0.1)| = 50.0001 mm/s
+
+
+def test_a_force_jump_is_measured_on_the_largest_component():
+    s = Supervisor(STALE, 0.002, SupervisorLimits(ft_jump_n=15.0))
+    s.check_inputs(0, *samples(0, force=(1.0, 2.0, -3.0)))
+    assert s.check_inputs(1, *samples(1, force=(-13.0, 2.0, 11.0))) == []    # 14 N each
+    f = s.check_inputs(2, *samples(2, force=(-13.0, -13.5, 11.0)))           # 15.5 N in y
+    assert kinds(f) == ["ft_jump"] and "15.5 N" in f[0].detail

@@ -73,3 +73,21 @@ def test_a_canal_already_at_the_target_shape_is_shaped_but_still_red():
 
     c = Canal(CanalParams(initial_apical_mm=0.25, initial_taper=0.06))
     assert c.shaping() == 1.0 and c.completeness() == 0.0
+
+
+def test_world_completeness_is_the_canals_and_follows_every_cut():
+    """The world keeps the canal's completeness between cuts (the telemetry asks every tick);
+    every cut that removes material is seen at once."""
+    world = World(WorldConfig(seed=3, orifice_gap_mm=0.5))
+    canal = world.canal
+    assert world.completeness() == canal.completeness() == 0.0
+    v0 = canal.version
+    _peck_to_working_length(world, 15.0)
+    assert canal.version > v0                      # the file cut the lumen
+    assert world.completeness() == canal.completeness() > 0.0
+    before, v1 = world.completeness(), canal.version
+    assert canal.cut(0.0) == 0.0 and canal.version == v1      # nothing removed: no change
+    assert world.completeness() == before
+    _peck_to_working_length(world, 15.0)
+    assert canal.version > v1
+    assert world.completeness() == canal.completeness() > before

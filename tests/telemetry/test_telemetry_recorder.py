@@ -328,3 +328,19 @@ def test_bad_metadata_is_refused_before_a_file_is_created(tmp_path):
     with pytest.raises(ConfigError, match="metadata"):
         McapRecorder(path, {"rate_hz": 500, "operator": object()})
     assert not path.exists()
+
+
+def test_a_row_whose_text_says_null_is_kept_whole_and_nan_in_an_array_is_null(tmp_path):
+    """Rows are looked at for non-finite values only when orjson wrote a null: a string
+    holding "null" is no such value, a NaN inside an array is (written as null)."""
+    path = tmp_path / "null.mcap"
+    with McapRecorder(path, {"rate_hz": 500.0}, validate=False, view=False) as rec:
+        rec.record(ramp_row(0, step="null step"))
+        rec.record(ramp_row(1, q_deg=[0.0, math.nan, 0.0, 0.0, 0.0, 0.0]))
+        rec.record(ramp_row(2, fz_n=math.inf))
+    assert rec.nonfinite_rows == 2
+    with open(path, "rb") as f:
+        ticks = [json.loads(m.data) for _, ch, m in make_reader(f).iter_messages()
+                 if ch.topic == "/tick"]
+    assert ticks[0]["step"] == "null step"
+    assert ticks[1]["q_deg"][1] is None and "fz_n" not in ticks[2]

@@ -216,3 +216,10 @@ def test_empty_run():
     assert s.ticks == 0 and s.duration_s == 0.0 and s.steps == []
     assert s.peak_file_torque_mNm is None and s.lateness_p99_us is None
     json.loads(summary_json(s))
+
+
+def test_non_finite_and_non_numbers_count_as_unknown():
+    from dentibot.telemetry.summary import _num
+    assert _num(1.5) == 1.5 and _num(2) == 2.0 and type(_num(2)) is float
+    for bad in (math.nan, math.inf, -math.inf, None, True, "1.0"):
+        assert _num(bad) is None, bad
