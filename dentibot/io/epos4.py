@@ -598,7 +598,8 @@ class Epos4Driver:
         self.mode_display: int | None = None
         self.nmt_state: NmtState | None = None
         self.last_emcy: Emcy | None = None
-        self._emcy_fault: Emcy | None = None
+        self._emcy_fault: Emcy | None = None     # the first EMCY since the last reset
+        self._emcy_later = 0                       # EMCYs received after it
         self._link_error: str | None = None
         self._rebooted = False
         self._sample: MotorState | None = None
@@ -1145,7 +1146,7 @@ class Epos4Driver:
         g = self.gear_ratio
         fault = None
         if self._emcy_fault is not None:
-            fault = self._emcy_fault.describe()
+            fault = self._emcy_cause()
         elif state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
             fault = f"drive in {state.value} (statusword 0x{sw:04X})"
         self._sample = MotorState(
@@ -1171,9 +1172,16 @@ class Epos4Driver:
         self.last_emcy = emcy
         if emcy.is_reset:
             self._emcy_fault = None
+            self._emcy_later = 0
             log.info("epos4 EMCY error reset", device=self.name)
         else:
-            self._emcy_fault = emcy
+            # the first error of an episode is its cause: the ones that follow (an
+            # under-voltage after an over-current, a following error after either) are
+            # consequences, counted but not reported in its place
+            if self._emcy_fault is None:
+                self._emcy_fault = emcy
+            else:
+                self._emcy_later += 1
             log.warning("epos4 EMCY", device=self.name, code=f"0x{emcy.code:04X}",
                         meaning=emcy.meaning, register=f"0x{emcy.register:02X}")
 
@@ -1187,6 +1195,13 @@ class Epos4Driver:
         self.nmt_state = state
 
     # ================================================================== health
+    def _emcy_cause(self) -> str:
+        """The first EMCY of the episode, and how many came after it."""
+        text = self._emcy_fault.describe()
+        if self._emcy_later:
+            text += f" (first of {self._emcy_later + 1} EMCYs; last {self.last_emcy.describe()})"
+        return text
+
     def _fault_message(self) -> str | None:
         if self._link_error is not None:
             return f"CAN link down ({self._bus_description()}): {self._link_error}"
@@ -1194,8 +1209,7 @@ class Epos4Driver:
             return (f"node {self.node_id} sent a boot-up message: it was reset and lost its "
                     "PDO configuration; reconnect")
         if self._emcy_fault is not None:
-            return (f"{self._emcy_fault.describe()}; drive in FAULT: call fault_reset(), "
-                    "then enable()")
+            return f"{self._emcy_cause()}; drive in FAULT: call fault_reset(), then enable()"
         if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
             return (f"drive in {self.state.value} (statusword "
                     f"{co.describe_statusword(self.statusword or 0)}): call fault_reset()")
@@ -1324,6 +1338,7 @@ class Epos4Driver:
                 f"{co.describe_statusword(self.statusword or 0)}; last "
                 f"{self.last_emcy.describe() if self.last_emcy else 'EMCY: none'})"))
         self._emcy_fault = None
+        self._emcy_later = 0
         log.info("epos4 fault reset", device=self.name)
 
     async def set_velocity(self, rpm: float) -> None:

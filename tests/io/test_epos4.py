@@ -400,6 +400,28 @@ async def test_emcy_faults_then_reset_and_enable_again():
         assert (await drv.read()).velocity_rpm == pytest.approx(30.0, abs=1 / GEAR)
 
 
+async def test_the_first_emcy_of_an_episode_is_reported_as_its_cause():
+    """An over-current, then an under-voltage in its wake: the fault names the over-current
+    (the cause), says that more followed, and a reset starts a new episode."""
+    async with rig() as r:
+        drv, node = r.drv, r.node
+        await drv.set_velocity(60.0)
+        await asyncio.sleep(0.1)
+        node.inject_emcy(0x2310)                               # overcurrent
+        node.inject_emcy(0x3210)                               # DC link over-voltage
+        assert await until(lambda: drv.emcy_count >= 2)
+        exc = await read_fault(drv)
+        text = str(exc)
+        assert text.index("0x2310") < text.index("0x3210")     # the cause comes first
+        assert "first of 2 EMCYs" in text
+        assert drv.last_emcy.code == 0x3210
+        await drv.fault_reset()
+        await drv.enable()
+        node.inject_emcy(0x3210)
+        exc = await read_fault(drv)
+        assert "0x3210" in str(exc) and "0x2310" not in str(exc) and "first of" not in str(exc)
+
+
 async def test_quick_stop_then_enable():
     async with rig() as r:
         drv = r.drv
