@@ -8,8 +8,11 @@ assumed: an empty file, or a device without its host, is an error. Example::
     ft:        {host: 192.168.1.1, port: 49152, http_port: 80}
     handpiece: {interface: socketcand, host: 127.0.0.1, port: 29536, channel: vcan0, node_id: 1}
     aux:       {host: 192.168.0.50, port: 502, device_id: 1}
+    tracker:   {interface: socketcand, host: 127.0.0.1, port: 29536, channel: vcan0,
+                mount_anchors_mm: [[...], ...], tooth_anchors_mm: [[...], ...]}
 
-Start-up order: F/T stream, aux I/O, handpiece (NMT, PDOs, CiA 402 enable), arm (activate,
+Start-up order: F/T stream, aux I/O, handpiece (NMT, PDOs, CiA 402 enable), the patient
+tracker when configured (its encoders identified, configured and started), arm (activate,
 home, velocity timeout as the dead-man). A failure closes what was opened, then raises.
 """
 
@@ -20,7 +23,7 @@ import os
 from collections.abc import AsyncIterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field
 
@@ -36,6 +39,15 @@ from dentibot.io.epos4 import (
 )
 from dentibot.io.meca500 import Meca500Driver
 from dentibot.io.netft import NetFTDriver
+from dentibot.io.tracker import (
+    DEFAULT_DRUM_MM_PER_REV,
+    DEFAULT_NODE_IDS,
+    DEFAULT_RANGE_MM,
+    DEFAULT_RESOLUTION_MM,
+    DEFAULT_TRANSMISSION_TYPE,
+    DEFAULT_ZERO_LENGTH_MM,
+    TrackerDriver,
+)
 from dentibot.yamlfile import StrictModel, YamlFileError, load
 
 
@@ -69,6 +81,10 @@ class FTConfig(_Strict):
     http_port: int = Field(80, ge=1, le=65535)
     counts_per_force: float | None = Field(None, gt=0)
     counts_per_torque: float | None = Field(None, gt=0)
+    stale_after_ms: float = Field(
+        20.0, ge=2.0, le=500.0,
+        description="the driver faults when its newest record is older than this (ms); the "
+                    "runtime's own stale bound (limits.stale_periods.ft) usually acts first")
 
 
 class HandpieceConfigIO(_Strict):
@@ -104,6 +120,74 @@ class AuxConfig(_Strict):
                     "after this long without the host's counter; at least 5 poll periods")
 
 
+_Coord = Annotated[float, Field(ge=-1000.0, le=1000.0)]
+_Angle = Annotated[float, Field(ge=-180.0, le=180.0)]
+_NodeId = Annotated[int, Field(ge=1, le=127)]
+_Xyz = tuple[_Coord, _Coord, _Coord]
+
+
+class TrackerConfig(_Strict):
+    """The patient tracking module: draw-wire encoders (CiA 406) on a CAN bus, string i
+    from ``mount_anchors_mm[i]`` (frame {M}, on the handpiece mount) to
+    ``tooth_anchors_mm[i]`` (frame {T}, on the tooth clamp). Six strings give the pose,
+    three the position only."""
+
+    interface: Literal["socketcand", "socketcan", "virtual", "pcan", "kvaser", "ixxat"]
+    channel: str = Field("can0", min_length=1, max_length=64)
+    host: str = Field("127.0.0.1", min_length=1, max_length=253)
+    port: int = Field(29536, ge=1, le=65535)
+    node_ids: list[_NodeId] = Field(default_factory=lambda: list(DEFAULT_NODE_IDS),
+                                    min_length=3, max_length=6,
+                                    description="node ids of strings 1..n")
+    mount_anchors_mm: list[_Xyz] = Field(min_length=3, max_length=6,
+                                         description="a_i in the mount frame {M} (mm)")
+    tooth_anchors_mm: list[_Xyz] = Field(min_length=3, max_length=6,
+                                         description="b_i in the tooth frame {T} (mm)")
+    mount_in_flange_mm: _Xyz = Field((0.0, 0.0, 0.0),
+                                     description="origin of {M} in the flange frame (mm)")
+    mount_in_flange_deg: tuple[_Angle, _Angle, _Angle] = Field(
+        (0.0, 0.0, 0.0), description="{M} in the flange frame, x-y-z Euler angles (deg)")
+    resolution_mm: float = Field(DEFAULT_RESOLUTION_MM, ge=0.0001, le=1.0,
+                                 description="measuring step (mm per unit)")
+    drum_mm_per_rev: float = Field(DEFAULT_DRUM_MM_PER_REV, ge=1.0, le=1000.0)
+    range_mm: float = Field(DEFAULT_RANGE_MM, ge=10.0, le=5000.0)
+    zero_length_mm: list[Annotated[float, Field(ge=0.0, le=1000.0)]] | None = Field(
+        None, min_length=3, max_length=6,
+        description="string length at position value 0, per string (default 20 mm each)")
+    min_length_mm: float = Field(30.0, ge=0.0, le=1000.0, description="slack minimum")
+    max_length_mm: float = Field(300.0, ge=1.0, le=5000.0)
+    transmission_type: int = Field(DEFAULT_TRANSMISSION_TYPE, ge=1, le=240,
+                                   description="a position every n-th SYNC")
+    sync_producer: bool = Field(False, description="the tracker sends SYNC itself (no "
+                                                   "other master on the bus does)")
+    sync_period_ms: float = Field(2.0, ge=0.5, le=100.0)
+    heartbeat_ms: int = Field(100, ge=10, le=1000)
+    heartbeat_timeout_ms: int = Field(350, ge=20, le=5000)
+    stale_after_ms: int = Field(100, ge=5, le=1000)
+    sdo_timeout_s: float = Field(0.5, ge=0.05, le=5.0)
+    connect_timeout_s: float = Field(2.0, ge=0.1, le=30.0)
+    vendor_id: int | None = Field(None, ge=0, le=0xFFFF_FFFF)
+    product_code: int | None = Field(None, ge=0, le=0xFFFF_FFFF)
+
+    def checks(self) -> list[tuple[tuple, str]]:
+        out = []
+        n = len(self.node_ids)
+        if len(set(self.node_ids)) != n:
+            out.append((("tracker", "node_ids"), "node ids must be distinct"))
+        if n not in (3, 6):
+            out.append((("tracker", "node_ids"), f"{n} strings: 6 (pose) or 3 (position)"))
+        for key in ("mount_anchors_mm", "tooth_anchors_mm", "zero_length_mm"):
+            v = getattr(self, key)
+            if v is not None and len(v) != n:
+                out.append((("tracker", key), f"{len(v)} entries for {n} strings"))
+        if self.min_length_mm >= self.max_length_mm:
+            out.append((("tracker", "min_length_mm"), "below max_length_mm"))
+        if self.heartbeat_timeout_ms < 2 * self.heartbeat_ms:
+            out.append((("tracker", "heartbeat_timeout_ms"),
+                        f"at least two heartbeat periods ({2 * self.heartbeat_ms} ms)"))
+        return out
+
+
 class DevicesConfig(_Strict):
     """The devices of a real (or wire-simulated) set-up: every address written out, none
     assumed. The aux I/O carries the emergency stop: leaving it out needs ``estop_waiver``, a
@@ -113,6 +197,7 @@ class DevicesConfig(_Strict):
     ft: FTConfig
     handpiece: HandpieceConfigIO
     aux: AuxConfig | None = None
+    tracker: TrackerConfig | None = None
     estop_waiver: str | None = Field(None, min_length=10, max_length=500)
 
     def cross_checks(self) -> list[tuple[tuple, str]]:
@@ -128,29 +213,39 @@ class DevicesConfig(_Strict):
             out.append((("handpiece", "host_heartbeat_ms"),
                         f"{h.host_heartbeat_ms} ms: at most a third of consumer_ms "
                         f"({h.consumer_ms} ms), so that one lost beat is not a fault"))
+        t = self.tracker
+        if t is not None:
+            out.extend(t.checks())
+            same_bus = (t.interface, t.channel, t.host, t.port) == (
+                h.interface, h.channel, h.host, h.port)
+            taken = set(t.node_ids) & {h.node_id, h.host_node_id}
+            if same_bus and taken:
+                out.append((("tracker", "node_ids"),
+                            f"{sorted(taken)} already used on this bus by the handpiece"))
         return out
 
 
 def loopback_config(host: str = "127.0.0.1", meca_port: int = 10000, netft_port: int = 49152,
                     netft_http_port: int = 8080, modbus_port: int = 5020,
                     can_port: int = 29536, can_channel: str = "vcan0",
-                    meca_monitor_port: int | None = None) -> DevicesConfig:
+                    meca_monitor_port: int | None = None,
+                    tracker: TrackerConfig | None = None) -> DevicesConfig:
     """The addresses ``dentibot sim serve`` listens on (by default: its default ports; the
-    Meca500 monitoring port is the next one unless given)."""
+    Meca500 monitoring port is the next one unless given; ``tracker`` as given)."""
     return DevicesConfig(
         arm=ArmConfig(host=host, control_port=meca_port,
                       monitor_port=meca_monitor_port or meca_port + 1),
         ft=FTConfig(host=host, port=netft_port, http_port=netft_http_port),
         handpiece=HandpieceConfigIO(interface="socketcand", host=host, port=can_port,
                                     channel=can_channel),
-        aux=AuxConfig(host=host, port=modbus_port))
+        aux=AuxConfig(host=host, port=modbus_port), tracker=tracker)
 
 
 def devices_yaml(cfg: DevicesConfig) -> str:
     """``cfg`` as a device configuration file (what :func:`load_devices_config` reads back)."""
     import yaml
 
-    return yaml.safe_dump(cfg.model_dump(exclude_none=True), sort_keys=False)
+    return yaml.safe_dump(cfg.model_dump(mode="json", exclude_none=True), sort_keys=False)
 
 
 def load_devices_config(path: str | Path) -> DevicesConfig:
@@ -220,6 +315,25 @@ class OpenDevices:
     ft: NetFTDriver
     motor: Epos4Driver
     aux: AuxModbusDriver | None
+    tracker: TrackerDriver | None = None
+
+
+def tracker_driver(t: TrackerConfig) -> TrackerDriver:
+    """The driver a ``tracker:`` section describes (not yet connected)."""
+    return TrackerDriver(
+        interface=t.interface, channel=t.channel, host=t.host, port=t.port,
+        bus_kwargs={"host": t.host, "port": t.port} if t.interface == "socketcand" else None,
+        node_ids=t.node_ids, resolution_mm=t.resolution_mm, drum_mm_per_rev=t.drum_mm_per_rev,
+        range_mm=t.range_mm,
+        zero_length_mm=(t.zero_length_mm if t.zero_length_mm is not None
+                        else DEFAULT_ZERO_LENGTH_MM),
+        min_length_mm=t.min_length_mm, max_length_mm=t.max_length_mm,
+        transmission_type=t.transmission_type, sync_producer=t.sync_producer,
+        sync_period_s=t.sync_period_ms / 1000.0, heartbeat_ms=t.heartbeat_ms,
+        heartbeat_timeout_s=t.heartbeat_timeout_ms / 1000.0,
+        stale_after_s=t.stale_after_ms / 1000.0, sdo_timeout_s=t.sdo_timeout_s,
+        connect_timeout_s=t.connect_timeout_s, vendor_id=t.vendor_id,
+        product_code=t.product_code)
 
 
 @contextlib.asynccontextmanager
@@ -234,7 +348,8 @@ async def open_devices(cfg: DevicesConfig, *, home: bool = True,
     a, f, h, x = cfg.arm, cfg.ft, cfg.handpiece, cfg.aux
     async with contextlib.AsyncExitStack() as stack:
         ft = NetFTDriver(f.host, f.port, f.http_port, counts_per_force=f.counts_per_force,
-                         counts_per_torque=f.counts_per_torque)
+                         counts_per_torque=f.counts_per_torque,
+                         stale_after_s=f.stale_after_ms / 1000.0)
         await ft.connect()
         stack.push_async_callback(ft.close)
         aux = None
@@ -254,6 +369,11 @@ async def open_devices(cfg: DevicesConfig, *, home: bool = True,
         await motor.connect()
         stack.push_async_callback(motor.close)
         await motor.enable()
+        tracker = None
+        if cfg.tracker is not None:
+            tracker = tracker_driver(cfg.tracker)
+            await tracker.connect()
+            stack.push_async_callback(tracker.close)
         arm = Meca500Driver(a.host, a.control_port, a.monitor_port,
                             vel_timeout_s=a.vel_timeout_s,
                             connection_watchdog_s=a.connection_watchdog_s)
@@ -266,4 +386,4 @@ async def open_devices(cfg: DevicesConfig, *, home: bool = True,
         if home:
             await arm.activate()
             await arm.home()
-        yield OpenDevices(arm, ft, motor, aux)
+        yield OpenDevices(arm, ft, motor, aux, tracker)

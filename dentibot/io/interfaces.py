@@ -189,3 +189,56 @@ class AuxIO(Protocol):
     async def set_platform(self, mm) -> None:
         """Command the platform position (x, y, z mm)."""
         ...
+
+
+#: ``StringSample.status`` values, one per string: the length is valid ...
+STRING_OK = "ok"
+#: ... no new reading from its encoder within the staleness bound (the last one is kept);
+STRING_STALE = "stale"
+#: ... shorter than the slack minimum (a broken, unhooked or fully retracted wire);
+STRING_SLACK = "slack"
+#: ... beyond the encoder's measuring range;
+STRING_OVER_RANGE = "over_range"
+#: ... no reading yet (the length is NaN);
+STRING_NO_DATA = "no_data"
+#: ... its encoder is not operational (heartbeat lost, NMT state, emergency message).
+STRING_FAULT = "fault"
+
+
+@dataclass(frozen=True, slots=True)
+class StringSample:
+    """The patient tracker's string lengths, one per draw-wire encoder (string 1 first).
+
+    ``lengths_mm`` (mm; NaN before a string's first reading), ``counts`` (the encoders' raw
+    position values, measuring units), ``status`` (one of the ``STRING_*`` values per
+    string). ``seq`` grows by one per new set of readings."""
+
+    t: float
+    seq: int
+    lengths_mm: tuple[float, ...]
+    counts: tuple[int, ...]
+    status: tuple[str, ...]
+
+    @property
+    def usable(self) -> tuple[bool, ...]:
+        """Per string: the length may enter the pose (status ``STRING_OK``)."""
+        return tuple(s == STRING_OK for s in self.status)
+
+    @property
+    def ok(self) -> bool:
+        return all(s == STRING_OK for s in self.status)
+
+
+@runtime_checkable
+class PatientTracker(Protocol):
+    """The string-based patient tracking module: string lengths between the handpiece mount
+    and a clamp on the patient's teeth (the pose follows from ``dentibot.control.strings``)."""
+
+    async def read(self) -> StringSample:
+        """Newest string lengths, without waiting; per-string problems are in ``status``."""
+        ...
+
+    async def recover(self) -> None:
+        """On the operator's reset after a fault: the encoders back to operational. Raises a
+        :class:`~dentibot.errors.DeviceFault` when it cannot."""
+        ...

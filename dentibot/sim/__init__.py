@@ -13,11 +13,13 @@ from dentibot.sim.handpiece import HandpieceModel, HandpieceParams
 from dentibot.sim.nitifile import FileFractured, NiTiFile
 from dentibot.sim.patient import HeadMotion, MotionProfile, StaticPose, StewartSquare
 from dentibot.sim.timing import RealTimeStepper
+from dentibot.sim.tracker_device import SimPatientTracker, StringModel, TrackerSimParams
 from dentibot.sim.world import World, WorldConfig
 
 __all__ = [
     "ArmParams", "Canal", "CanalParams", "FTSensorModel", "FTSensorParams", "FileFractured",
     "HandpieceModel", "HandpieceParams", "HeadMotion", "MotionProfile", "NiTiFile",
     "RealTimeStepper", "SimArm", "SimArmModel", "SimAux", "SimForceSensor", "SimHandpiece",
-    "StaticPose", "StewartSquare", "World", "WorldConfig", "make_devices",
+    "SimPatientTracker", "StaticPose", "StewartSquare", "StringModel", "TrackerSimParams",
+    "World", "WorldConfig", "make_devices",
 ]

@@ -6,7 +6,10 @@
 - the EPOS4 as a CANopen node on a python-can ``virtual`` bus, exposed to other processes
   through a socketcand-compatible TCP endpoint on ``can_port`` (channel ``can_channel``) and,
   with ``can_interface`` set, on that python-can bus as well (e.g. ``socketcan`` on a kernel
-  vcan named ``can_channel``: :class:`~dentibot.sim.can_bus_attach.CanBusBridge`).
+  vcan named ``can_channel``: :class:`~dentibot.sim.can_bus_attach.CanBusBridge`);
+- the patient tracker's six CiA 406 draw-wire encoders (node ids 0x21..0x26) on the same
+  CAN bus (``tracker``, on by default: they stay PRE-OPERATIONAL and silent, heartbeat off,
+  until a tracker driver configures and starts them).
 
 The aux I/O's host-lost output is wired to the EPOS4's safe-torque-off input (in series with
 the emergency stop, as a clinic's safety relay chain would be): when the host stops feeding the
@@ -27,7 +30,8 @@ from dataclasses import dataclass
 import can
 import structlog
 
-from dentibot.io.devices import DevicesConfig, loopback_config
+from dentibot.errors import ConfigError
+from dentibot.io.devices import DevicesConfig, TrackerConfig, loopback_config
 from dentibot.sim.aux_modbus_server import AuxModbusServer
 from dentibot.sim.can_bus_attach import CanBusBridge, open_bus
 from dentibot.sim.epos4_node import Epos4Node
@@ -35,6 +39,8 @@ from dentibot.sim.meca500_server import Meca500Server
 from dentibot.sim.netft_server import NetFTServer
 from dentibot.sim.socketcand import SocketcandServer
 from dentibot.sim.timing import RealTimeStepper
+from dentibot.sim.tracker_device import TrackerSimParams
+from dentibot.sim.tracker_nodes import TrackerNodes
 from dentibot.sim.world import World, WorldConfig
 
 log = structlog.get_logger("dentibot.sim.serve")
@@ -57,15 +63,21 @@ class ServePorts:
     #: python-can interface to attach the CAN bus to as well ("socketcan" for a kernel vcan
     #: named ``can_channel``); None: socketcand only.
     can_interface: str | None = None
+    #: the patient tracker's encoders on the CAN bus.
+    tracker: bool = True
 
 
 class VirtualDentiBot:
     """All four wire simulators over one World; ``async with`` starts and stops them."""
 
     def __init__(self, world: World | WorldConfig | None = None,
-                 ports: ServePorts = ServePorts()) -> None:
+                 ports: ServePorts = ServePorts(),
+                 tracker: TrackerSimParams | None = None) -> None:
         self.world = world if isinstance(world, World) else World(world)
         self.cfg = ports
+        self.tracker_params = tracker or TrackerSimParams()
+        self.tracker: TrackerNodes | None = None
+        self._tracker_bus: can.BusABC | None = None
         self.stepper = RealTimeStepper(self.world)
         self._bus_channel = f"dentibot-serve-{id(self)}-{next(_bus_ids)}"
         self._bus: can.BusABC | None = None
@@ -94,12 +106,29 @@ class VirtualDentiBot:
             "can_interface": self.cfg.can_interface,
         }
 
-    def devices_config(self) -> DevicesConfig:
-        """The device configuration that points the real drivers at these simulators."""
+    def devices_config(self, tracker: bool = False) -> DevicesConfig:
+        """The device configuration that points the real drivers at these simulators
+        (``tracker``: with the patient tracker's section, its geometry the simulator's)."""
         p = self.ports
         return loopback_config(p["host"], p["meca_port"], p["netft_port"], p["netft_http_port"],
                                p["modbus_port"], p["can_port"], p["can_channel"],
-                               meca_monitor_port=p["meca_monitor_port"])
+                               meca_monitor_port=p["meca_monitor_port"],
+                               tracker=self.tracker_config() if tracker else None)
+
+    def tracker_config(self) -> TrackerConfig:
+        """The ``tracker:`` section for the simulated encoders (through socketcand; SYNC
+        from the handpiece driver)."""
+        if self.tracker is None:
+            raise ConfigError("sim.tracker", False, "a VirtualDentiBot started with the tracker")
+        tp, p = self.tracker_params, self.ports
+        return TrackerConfig(
+            interface="socketcand", host=p["host"], port=p["can_port"],
+            channel=p["can_channel"], node_ids=[n.node_id for n in self.tracker.nodes],
+            mount_anchors_mm=[tuple(map(float, a)) for a in tp.mount_mm],
+            tooth_anchors_mm=[tuple(map(float, b)) for b in tp.tooth_mm],
+            resolution_mm=tp.resolution_mm, drum_mm_per_rev=tp.drum_mm_per_rev,
+            range_mm=tp.range_mm, zero_length_mm=[tp.zero_length_mm] * len(tp.mount_mm),
+            min_length_mm=tp.min_length_mm, max_length_mm=tp.max_length_mm)
 
     async def start(self) -> None:
         c, w = self.cfg, self.world
@@ -120,6 +149,9 @@ class VirtualDentiBot:
         self.socketcand = SocketcandServer(
             can.Bus(interface="virtual", channel=self._bus_channel), c.host, c.can_port,
             c.can_channel)
+        if c.tracker:
+            self._tracker_bus = can.Bus(interface="virtual", channel=self._bus_channel)
+            self.tracker = TrackerNodes(w, self._tracker_bus, self.tracker_params)
         try:
             if c.can_interface:
                 outer = open_bus(c.can_interface, c.can_channel)
@@ -127,8 +159,10 @@ class VirtualDentiBot:
                     can.Bus(interface="virtual", channel=self._bus_channel), outer,
                     own_buses=True)
                 self.can_bridge.start()
-            for server in (self.meca, self.netft, self.modbus, self.epos, self.socketcand):
-                await server.start()
+            for server in (self.meca, self.netft, self.modbus, self.epos, self.tracker,
+                           self.socketcand):
+                if server is not None:
+                    await server.start()
         except BaseException:
             await self.close()
             raise
@@ -136,9 +170,13 @@ class VirtualDentiBot:
 
     async def close(self) -> None:
         self._stop.set()
-        for server in (self.socketcand, self.epos, self.modbus, self.netft, self.meca):
+        for server in (self.socketcand, self.tracker, self.epos, self.modbus, self.netft,
+                       self.meca):
             if server is not None:
                 await server.close()
+        if self._tracker_bus is not None:
+            self._tracker_bus.shutdown()
+            self._tracker_bus = None
         if self.socketcand is not None:
             self.socketcand.bus.shutdown()
         if self.can_bridge is not None:
