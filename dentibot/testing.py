@@ -39,10 +39,13 @@ __all__ = ["Procedure", "WorldConfig", "dentibot_sim", "dentibot_wire", "simulat
 
 def simulated_procedure(world: World | WorldConfig | None = None,
                         config: RuntimeConfig | None = None, *,
-                        calibrated: bool = True) -> Procedure:
+                        calibrated: bool = True, tracker=None) -> Procedure:
     """A simulated procedure in lock-step time, driven by its waits, keeping its rows (what
-    ``dentibot_sim`` builds), for helpers outside a fixture."""
-    return Procedure.simulated(world, config, calibrated=calibrated, keep_rows=True)
+    ``dentibot_sim`` builds), for helpers outside a fixture; ``tracker``: a simulated patient
+    tracker's geometry (``dentibot.sim.tracker_device.TrackerSimParams``), depth then in the
+    tooth's frame."""
+    return Procedure.simulated(world, config, calibrated=calibrated, keep_rows=True,
+                               tracker=tracker)
 
 
 @pytest.fixture
@@ -50,8 +53,8 @@ async def dentibot_sim():
     """Factory of simulated procedures in lock-step time (see the module docstring)."""
     made: list[Procedure] = []
 
-    def make(world=None, config=None, *, calibrated: bool = True) -> Procedure:
-        proc = simulated_procedure(world, config, calibrated=calibrated)
+    def make(world=None, config=None, *, calibrated: bool = True, tracker=None) -> Procedure:
+        proc = simulated_procedure(world, config, calibrated=calibrated, tracker=tracker)
         made.append(proc)
         return proc
 

@@ -21,19 +21,21 @@ waits are for ticks of the running loop (:meth:`Procedure.run_for`). Time is one
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
 import structlog
 
 from dentibot.app.simulated import Truth, World, WorldConfig, plan_config, sim_devices, \
-    true_gravity_model
+    tooth_config, true_gravity_model
 from dentibot.control.wrench import GravityModel
 from dentibot.runtime.clock import Clock, LockStepClock, RealTimeClock
 from dentibot.runtime.config import RuntimeConfig
 from dentibot.runtime.control_task import Runtime
 from dentibot.runtime.estimate import Devices
 from dentibot.runtime.gate import GateClosed, TickGate
+from dentibot.sim.tracker_device import TrackerSimParams
 from dentibot.states.treatment import Refusal
 
 log = structlog.get_logger("dentibot.procedure")
@@ -90,17 +92,21 @@ class Procedure:
                   time: str = "lockstep", drive: bool = True,
                   sink: RowSink | None = None, event_sink: EventSink | None = None,
                   keep_rows: bool = False, step_name: str = "",
-                  devices: Callable[[World, Devices], Devices] | None = None) -> Procedure:
+                  devices: Callable[[World, Devices], Devices] | None = None,
+                  tracker: TrackerSimParams | None = None) -> Procedure:
         """The built-in simulator under a runtime. ``config`` defaults to one that agrees with
         the world (:func:`~dentibot.app.simulated.plan_config`); ``calibrated``: the load is
         known (the sensor's true offsets), else a load calibration must come first; ``time``
         one of :data:`SIM_TIMES`; ``devices(world, devices)`` may wrap the simulated devices
-        (fault injection)."""
+        (fault injection); ``tracker``: a simulated patient tracker of this geometry, and
+        depth measured in the tooth's frame (unless ``config`` says otherwise)."""
         if time not in SIM_TIMES:
             raise ValueError(f"time {time!r}: one of {', '.join(SIM_TIMES)}")
         w = world if isinstance(world, World) else World(world)
         cfg = plan_config(w, config)
-        dev = sim_devices(w)
+        dev = sim_devices(w, tracker)
+        if tracker is not None and cfg.tooth is None:
+            cfg = dataclasses.replace(cfg, tooth=tooth_config(w, tracker))
         if devices is not None:
             dev = devices(w, dev)
         clock = LockStepClock(w.step, cfg.period_s, paced=time == "paced",

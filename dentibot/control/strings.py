@@ -242,6 +242,36 @@ def forward(geometry: StringGeometry, lengths_mm: Sequence[float], start_pose, *
                         "" if ok else f"solver did not converge: {sol.message}", int(sol.nfev))
 
 
+def track(geometry: StringGeometry, lengths_mm: Sequence[float], previous_pose, *,
+          iterations: int = 2) -> tuple[np.ndarray, float]:
+    """One control tick's pose update: ``iterations`` Gauss-Newton steps of the same model
+    as :func:`forward` (``l_i = || p + R b_i - a_i ||``, Jacobian :func:`length_jacobian`,
+    rotation updated on the left, ``R <- exp([dth]x) R``) from ``previous_pose``, all six
+    strings. The tooth moves a fraction of a millimetre between two ticks, so two steps
+    reach the least-squares pose to well under the encoders' resolution; :func:`forward`
+    gives the covariance and handles masked strings when that is needed.
+
+    Returns ``(MT_T 4x4, rms residual mm)``; a singular Jacobian (strings aligned) gives
+    a non-finite residual rather than an exception."""
+    R, p = as_pose(previous_pose)
+    R, p = R.copy(), p.copy()
+    m = np.asarray(lengths_mm, dtype=float).reshape(-1)
+    if m.shape != (geometry.n,) or geometry.n < FULL_POSE_STRINGS:
+        raise ConfigError("strings.lengths_mm", m.shape,
+                          f"{geometry.n} lengths, at least {FULL_POSE_STRINGS}")
+    for _ in range(iterations):
+        pose = (R, p)
+        r = m - lengths(geometry, pose)
+        try:
+            dx = np.linalg.lstsq(length_jacobian(geometry, pose), r, rcond=None)[0]
+        except np.linalg.LinAlgError:
+            return pose_matrix(R, p), float("nan")
+        p = p + dx[:3]
+        R = Rotation.from_rotvec(dx[3:]).as_matrix() @ R
+    res = m - lengths(geometry, (R, p))
+    return pose_matrix(R, p), float(np.sqrt(np.mean(res ** 2)))
+
+
 # ============================================================================ consistency
 @dataclass(frozen=True)
 class LengthLimits:

@@ -16,6 +16,7 @@ from dentibot.errors import ConfigError
 from dentibot.protocol.schema import StalePeriods
 from dentibot.states.strategies import StrategyParams
 from dentibot.runtime.supervisor import SupervisorLimits
+from dentibot.runtime.tooth import ToothConfig
 
 
 def _check(name: str, value: float, lo: float, hi: float, unit: str = "") -> None:
@@ -159,6 +160,8 @@ class RuntimeConfig:
     thresholds: Thresholds = field(default_factory=Thresholds)
     plan: TreatmentPlan = field(default_factory=TreatmentPlan)
     tcp_points: int = 4                # thesis 3.4: four-point TCP (more when available)
+    #: the patient tracker's geometry: depth in the tooth's frame (None: the base frame)
+    tooth: ToothConfig | None = None
 
     def __post_init__(self) -> None:
         _check("control.period_s", self.period_s, 0.0002, 0.1, "s")

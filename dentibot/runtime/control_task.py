@@ -30,6 +30,7 @@ from dentibot.runtime.estimate import Devices, Estimate, MotorView, estimate
 from dentibot.runtime.rows import telemetry_row
 from dentibot.runtime.supervisor import Finding, Supervisor
 from dentibot.runtime.tool import reference_transforms, tool_matrix
+from dentibot.runtime.tooth import ToothFrame
 from dentibot.states.behaviours import Context, make_behaviours
 from dentibot.states.modes import MODES, Mode, admittance_params, send_file_command
 from dentibot.states.strategies import make_strategy
@@ -68,6 +69,7 @@ class Runtime:
         self.ctx = Context(make_strategy(config.plan.strategy, config.plan.working_length_mm,
                                          self.ts))
         self.behaviours = make_behaviours()
+        self.ctx.tooth = ToothFrame(config.tooth) if config.tooth and devices.tracker else None
         self.supervisor = Supervisor(config.thresholds.stale_periods, self.ts,
                                      config.thresholds.supervisor)
         self.stats = DeadlineStats(self.ts, deadlines=clock.realtime)
@@ -229,6 +231,7 @@ class Runtime:
     async def _read_and_estimate(self, k: int):
         try:
             js, w, m, aux = await self.dev.read()
+            strings = await self.dev.read_tracker()
         except DeviceFault as exc:
             return None, [Finding("device", str(exc))]
         self.ctx.pedal = bool(aux.pedal) if aux is not None else False
@@ -238,6 +241,8 @@ class Runtime:
         if any(f.kind.startswith("nonfinite") for f in findings):
             return None, findings
         est = self._estimate(np.asarray(js.q_deg, dtype=float), w.as_array(), m)
+        tooth = self.ctx.tooth and self.ctx.tooth.tick(strings, self.chain, self.ctx, est)
+        findings += [tooth] if tooth else []
         if not findings:
             findings = self.supervisor.observe(self.file_cmd, m, est, self.ctx.depth_ref
                                                is not None and self.mode.arm == "admittance")

@@ -9,7 +9,7 @@ import numpy as np
 
 from dentibot.control.feedrate import file_torque_estimate_mnm
 from dentibot.control.tick import external_wrench_h
-from dentibot.io.interfaces import Arm, AuxIO, ForceSensor, Handpiece
+from dentibot.io.interfaces import Arm, AuxIO, ForceSensor, Handpiece, PatientTracker
 
 _ZERO6 = np.zeros(6)
 
@@ -20,6 +20,7 @@ class Devices:
     ft: ForceSensor
     motor: Handpiece
     aux: AuxIO | None = None
+    tracker: PatientTracker | None = None
 
     async def read(self) -> tuple:
         """Step 1: the newest sample of each device, ``(joints, wrench, motor, aux or None)``
@@ -28,6 +29,10 @@ class Devices:
         w = await self.ft.read()
         m = await self.motor.read()
         return js, w, m, (await self.aux.read() if self.aux is not None else None)
+
+    async def read_tracker(self):
+        """The patient tracker's newest string lengths, or None without a tracker."""
+        return None if self.tracker is None else await self.tracker.read()
 
 
 @dataclass

@@ -15,6 +15,7 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -45,6 +46,9 @@ class Context:
     pedal: bool = False
     reversals: int = 0
     patient_episodes: int = 0
+    #: the tracked tooth (a runtime ToothFrame) when a patient tracker is configured: the
+    #: depth reference is then also kept in the tooth's frame and follows the patient
+    tooth: Any = None
 
 
 def feed_force_n(mode, ctx: Context, plan) -> float:
@@ -68,6 +72,8 @@ def set_depth_reference(ctx: Context, rt, est) -> None:
         ctx.depth_ref = (tuple(est.tip_0[i] + gap * a[i] for i in range(3)), a)
         est.depth_mm = -gap
         rt.treatment.depth_known = True
+        if ctx.tooth is not None:
+            ctx.tooth.register(*ctx.depth_ref)
 
 
 class Behaviour:
@@ -123,6 +129,8 @@ class Free(Behaviour):
         if depth is None or depth <= rt.cfg.plan.retract_to_mm:
             ctx.depth_ref = None
             rt.treatment.depth_known = False
+            if ctx.tooth is not None:
+                ctx.tooth.forget()
 
 
 class SelfAligning(Behaviour):

@@ -205,3 +205,21 @@ def test_bad_shapes_are_config_errors():
         s.forward(GEO, np.zeros(5), pose())
     with pytest.raises(ConfigError):
         s.LengthLimits(min_mm=10, max_mm=5)
+
+
+def test_one_tracking_step_follows_a_tick_of_patient_motion():
+    """A tick's motion (20 mm/s and 10 deg/s for 2 ms: 0.04 mm, 0.02 deg): one Gauss-Newton
+    step of :func:`s.track` lands on the new pose far below the encoders' 0.01 mm step;
+    two steps reach it to floating-point accuracy."""
+    geo = s.ring_geometry()
+    before = np.eye(4)
+    before[:3, 3] = (1.0, -2.0, 92.0)
+    after = before.copy()
+    after[:3, 3] += (0.0, 0.0, -0.04)
+    after[:3, :3] = Rotation.from_rotvec(np.radians([0.02, 0.0, 0.0])).as_matrix()
+    measured = s.lengths(geo, after)
+    one, res1 = s.track(geo, measured, before, iterations=1)
+    assert np.abs(one[:3, 3] - after[:3, 3]).max() < 1e-4 and res1 < 1e-5
+    two, res2 = s.track(geo, measured, before, iterations=2)
+    np.testing.assert_allclose(two, after, atol=1e-9)
+    assert res2 < 1e-9

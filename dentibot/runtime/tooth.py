@@ -1,0 +1,131 @@
+"""The tooth's pose from the patient tracker, and depth measured in the tooth's frame.
+
+Each tick (:meth:`ToothFrame.update`): the six string lengths give the tooth clamp's pose in
+the handpiece mount, ``MT_T`` (:func:`dentibot.control.strings.track` from the previous
+tick's pose), and with the flange pose ``0T_6`` (the tick's kinematic chain) and the mount on
+the flange ``6T_M`` the tooth in the base frame::
+
+    0T_T = 0T_6 6T_M MT_T
+
+The depth reference (orifice point and canal axis) is registered in {T} when the file goes
+in (:meth:`register`) and mapped back to {0} every tick (:meth:`reference_0`), so the depth,
+the working-length stop, the retract target and the supervisor's depth limit all follow the
+tooth when the patient moves, along the canal axis included. Without a tracker the reference
+stays frozen in {0}, as in the thesis, and a patient moving along the canal changes the true
+depth unseen.
+
+A string that goes slack, over its range, out of agreement with the others, or a tracker that
+stops answering, is a fault while a reference is held (the working length is no longer
+protected); before the file goes in it only makes the tooth pose unknown.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dentibot.control.strings import (
+    LengthLimits,
+    StringGeometry,
+    check_lengths,
+    forward,
+    track,
+)
+from dentibot.runtime.finding import Finding
+
+
+@dataclass(frozen=True)
+class ToothConfig:
+    """The tracker's geometry as the runtime knows it (calibrated anchors, the mount on the
+    flange ``6T_M``, a starting guess of ``MT_T``), the strings' limits (slack, range, jump
+    between ticks, the residual above which the six lengths disagree) and the length noise
+    (mm) of the first solve."""
+
+    geometry: StringGeometry
+    mount_in_flange: np.ndarray = field(default_factory=lambda: np.eye(4))
+    start_pose: np.ndarray = field(default_factory=lambda: np.eye(4))
+    limits: LengthLimits = field(default_factory=LengthLimits)
+    sigma_mm: float = 0.01
+
+
+class ToothFrame:
+    """The tracked tooth and the depth reference in its frame (see the module docstring)."""
+
+    def __init__(self, cfg: ToothConfig) -> None:
+        self.cfg = cfg
+        self.pose_mt: np.ndarray | None = None      # MT_T of the last good tick
+        self.pose_0t: np.ndarray | None = None      # 0T_T of the last good tick
+        self.residual_mm = float("nan")
+        self._previous_mm = None                    # the last good lengths (jump check)
+        self._ref_t: tuple[np.ndarray, np.ndarray] | None = None   # (orifice, axis) in {T}
+
+    @property
+    def registered(self) -> bool:
+        return self._ref_t is not None
+
+    def update(self, sample, r_0_6, p_0_6) -> Finding | None:
+        """The tooth's pose from ``sample`` (a StringSample) and the flange pose; a Finding
+        when the strings cannot be trusted (the pose is then unknown)."""
+        c = self.cfg
+        bad = check_lengths(sample.lengths_mm, c.limits, previous_mm=self._previous_mm)
+        if bad or not sample.ok:
+            self.pose_0t = None
+            why = "; ".join(f"string {f.string + 1}: {f.message or f.kind}" for f in bad) or \
+                f"tracker status {sample.status}"
+            return Finding("tracker", why)
+        if self.pose_mt is None:
+            est = forward(c.geometry, sample.lengths_mm, c.start_pose, sigma_mm=c.sigma_mm)
+            pose, res = est.pose, est.rms_mm
+        else:
+            pose, res = track(c.geometry, sample.lengths_mm, self.pose_mt, iterations=1)
+        self.residual_mm = res
+        if not np.isfinite(res) or res > c.limits.max_residual_mm:
+            self.pose_0t = None
+            return Finding("tracker", f"the six string lengths disagree: rms residual "
+                                      f"{res:.3f} mm > {c.limits.max_residual_mm} mm")
+        self._previous_mm = sample.lengths_mm
+        self.pose_mt = pose
+        t06 = np.eye(4)
+        t06[:3, :3] = r_0_6
+        t06[:3, 3] = p_0_6
+        self.pose_0t = t06 @ c.mount_in_flange @ pose
+        return None
+
+    def tick(self, sample, chain, ctx, est) -> Finding | None:
+        """Step 2 with a tracker: the tooth's pose from ``sample`` and the tick's kinematic
+        ``chain`` (its last frame is the flange), then the depth reference ``ctx.depth_ref``
+        and the estimate's depth ``est.depth_mm`` from the tooth's pose now. A Finding when
+        the strings fail while a reference is held."""
+        r_cols, p_0_6 = chain[1][-1]
+        finding = self.update(sample, np.array(r_cols).T, np.asarray(p_0_6, float))
+        if self._ref_t is None:
+            return None
+        if finding is not None:
+            return Finding(finding.kind, f"{finding.detail}: the depth in the tooth's frame "
+                                         "is lost with the file in the canal")
+        ref = self.reference_0()
+        ctx.depth_ref = ref
+        tip = est.tip_0
+        o, a = ref
+        est.depth_mm = sum((tip[i] - o[i]) * a[i] for i in range(3))
+        return None
+
+    def register(self, orifice_0, axis_0) -> None:
+        """Keep the depth reference (orifice point, canal axis; {0}) in the tooth's frame."""
+        if self.pose_0t is None:
+            self._ref_t = None
+            return
+        R, p = self.pose_0t[:3, :3], self.pose_0t[:3, 3]
+        self._ref_t = (R.T @ (np.asarray(orifice_0, float) - p), R.T @ np.asarray(axis_0, float))
+
+    def forget(self) -> None:
+        self._ref_t = None
+
+    def reference_0(self) -> tuple[tuple, tuple] | None:
+        """The registered reference mapped into {0} with the tooth's pose now."""
+        if self._ref_t is None or self.pose_0t is None:
+            return None
+        R, p = self.pose_0t[:3, :3], self.pose_0t[:3, 3]
+        o, a = self._ref_t
+        return tuple((R @ o + p).tolist()), tuple((R @ a).tolist())

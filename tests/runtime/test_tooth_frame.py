@@ -1,0 +1,99 @@
+"""Depth in the tooth's frame with the patient tracker: the working length holds when the
+patient moves along the canal; a broken string with the file in the canal is a fault."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from sim_runs import harness
+
+from dentibot.control.strings import ring_geometry
+from dentibot.runtime.tooth import ToothConfig, ToothFrame
+from dentibot.sim.faults import Jerk
+from dentibot.sim.tracker_device import TrackerSimParams
+
+WL = 16.0           # the default simulated canal's working length (mm)
+
+
+def _pose(rotvec, p) -> np.ndarray:
+    t = np.eye(4)
+    t[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    t[:3, 3] = p
+    return t
+
+
+def test_a_reference_registered_in_the_tooth_frame_moves_with_the_tooth():
+    """Synthetic: the tooth turns 10 deg about x and shifts 3 mm; the orifice and the canal
+    axis registered before follow it exactly (a rigid motion applied to a point and a
+    direction)."""
+    tf = ToothFrame(ToothConfig(geometry=ring_geometry()))
+    tf.pose_0t = _pose([0.0, 0.0, 0.0], [100.0, 0.0, 120.0])
+    o, a = (101.0, 2.0, 118.0), (0.0, 0.0, -1.0)
+    tf.register(o, a)
+    move = _pose([np.radians(10.0), 0.0, 0.0], [0.0, 3.0, 0.0])
+    tf.pose_0t = tf.pose_0t @ move
+    o2, a2 = tf.reference_0()
+    rel = np.array(o) - [100.0, 0.0, 120.0]                # the orifice in the tooth frame
+    R = move[:3, :3]
+    np.testing.assert_allclose(o2, np.array([100.0, 0.0, 120.0]) + R @ rel + [0.0, 3.0, 0.0],
+                               atol=1e-12)
+    np.testing.assert_allclose(a2, R @ np.array(a), atol=1e-12)
+    assert np.linalg.norm(a2) == pytest.approx(1.0)
+
+
+async def _drill_until_deep(h, depth_mm=8.0):
+    assert await h.command("drill") is None
+    assert await h.run_for(ticks=60_000, until=lambda r: r.last_row is not None
+                           and r.last_row["true_depth_mm"] > depth_mm)
+
+
+@pytest.mark.slow
+async def test_the_tooth_moving_towards_the_robot_no_longer_takes_the_file_past_the_apex():
+    """The tooth comes 4 mm towards the robot along the canal at 20 mm/s while the file is
+    8 mm in, then drilling goes on. With the tracker the treatment stops at the working
+    length measured in the tooth (the simulator's truth within 0.2 mm); without it the
+    base-frame depth reads 4 mm short and the file is driven past the working length."""
+    results = {}
+    for tracked in (False, True):
+        h, rows = harness(seed=3, tracker=TrackerSimParams() if tracked else None)
+        w = h.world
+        await _drill_until_deep(h)
+        _, axis = w.canal_axis_0()
+        w.motion = Jerk(w.motion, w.t, tuple(-x for x in axis), mm=4.0, mm_s=20.0)
+        k0 = len(rows)
+        await h.run_for(ticks=100_000, until=lambda r: r.state in ("done", "fault")
+                        or r.last_row["true_depth_mm"] > WL + 0.3)
+        after = rows[k0 + 500:]                            # the jerk is over (0.2 s)
+        lag = np.median([r["true_depth_mm"] - r["depth_mm"] for r in after])
+        results[tracked] = (h.runtime.state, max(r["true_depth_mm"] for r in rows), lag)
+    state, deepest, lag = results[True]
+    assert state == "done" and deepest <= WL + 0.2
+    assert abs(lag) < 0.2                                  # depth reads the truth
+    state, deepest, lag = results[False]
+    assert deepest > WL + 0.3                              # past the working length
+    assert lag == pytest.approx(4.0, abs=0.5)              # by the tooth's travel, unseen
+
+
+async def test_a_broken_string_with_the_file_in_the_canal_stops_everything_within_10_ms():
+    h, rows = harness(seed=3, tracker=TrackerSimParams())
+    w = h.world
+    await _drill_until_deep(h, 3.0)
+    tracker = h.runtime.dev.tracker
+    k0 = len(rows)
+    tracker.model.broken.add(2)                            # string 3 snaps: winds in fully
+    assert await h.run_for(ticks=50, until=lambda r: r.state == "fault")
+    detected_ms = (len(rows) - k0) * 2.0
+    assert detected_ms <= 10.0
+    cause = h.runtime.treatment.fault_causes[0]
+    assert cause.startswith("tracker") and "string 3" in cause
+    await h.run_for(ticks=25)                              # 50 ms
+    assert w.handpiece.cmd_rpm == 0.0 and max(abs(x) for x in w.arm.qdot) < 1.0
+
+
+async def test_before_the_file_goes_in_a_broken_string_only_loses_the_tooth_pose():
+    h, rows = harness(seed=3, tracker=TrackerSimParams())
+    h.runtime.dev.tracker.model.broken.add(0)
+    await h.run_for(ticks=20)
+    assert h.runtime.state == "idle"
+    assert h.runtime.ctx.tooth.pose_0t is None
