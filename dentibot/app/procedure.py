@@ -126,7 +126,8 @@ class Procedure:
         what :func:`dentibot.io.devices.open_devices` yields, drivers of real hardware or of the
         wire simulators); ``clock`` defaults to real time at the configured period. Without
         ``gravity`` a load calibration must come first."""
-        rt = Runtime(Devices(devices.arm, devices.ft, devices.motor, devices.aux), config,
+        rt = Runtime(Devices(devices.arm, devices.ft, devices.motor, devices.aux,
+                             getattr(devices, "tracker", None)), config,
                      clock or RealTimeClock(config.period_s), gravity=gravity, sink=sink,
                      event_sink=event_sink)
         return cls(rt)

@@ -11,6 +11,7 @@ possible, arm stopped; the recording and the summary are still written (status "
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import signal
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -21,6 +22,7 @@ import structlog
 
 from dentibot.app.procedure import Procedure
 from dentibot.app.steps import Aborted, StepExecutor
+from dentibot.app.tracking import tooth_config_from_devices
 from dentibot.errors import ConfigError
 from dentibot.io.devices import DevicesConfig, open_devices
 from dentibot.protocol.loader import ProtocolFileError
@@ -31,6 +33,7 @@ from dentibot.runtime.tool import tool_matrix
 from dentibot.sim.canal import CanalParams, material_params
 from dentibot.sim.ftsensor import FTSensorParams
 from dentibot.sim.nitifile import NiTiFile
+from dentibot.sim.tracker_device import TrackerSimParams
 from dentibot.sim.world import WorldConfig
 from dentibot.telemetry.foxglove import FoxgloveView
 from dentibot.telemetry.live import LiveView
@@ -180,7 +183,11 @@ class ProtocolRunner:
         if devices is None:
             self.procedure = Procedure.simulated(
                 world_config(protocol), runtime_config(protocol), calibrated=not calibrate,
-                sink=self._row, event_sink=self._event)
+                sink=self._row, event_sink=self._event,
+                tracker=TrackerSimParams() if protocol.patient.tracker else None)
+        elif protocol.patient.tracker and devices.tracker is None:
+            raise ConfigError("patient.tracker", True, "a tracker section in the device file "
+                              "(depth in the tooth's frame needs the patient tracker)")
         elif not calibrate:
             raise ConfigError("steps", [s.kind for s in protocol.steps],
                               "a calibrate_load step (real devices need the load identified "
@@ -257,8 +264,11 @@ class ProtocolRunner:
             async with self.procedure:
                 return await self._run()
         async with open_devices(self.devices, resume_arm=self.resume_arm) as d:
-            self.procedure = Procedure.over(d, runtime_config(self.p), sink=self._row,
-                                            event_sink=self._event)
+            cfg = runtime_config(self.p)
+            if self.p.patient.tracker:
+                cfg = dataclasses.replace(cfg,
+                                          tooth=tooth_config_from_devices(self.devices.tracker))
+            self.procedure = Procedure.over(d, cfg, sink=self._row, event_sink=self._event)
             async with self.procedure:
                 return await self._run()
 
@@ -276,7 +286,13 @@ class ProtocolRunner:
             "file_strength_mnm": p.file.torsional_strength_mnm,
             # what is enforced: the runtime's limit, and the drive's current limit's torque
             "torque_limit_mnm": th.torque_limit_mnm, "drive_limit_mnm": th.drive_limit_mnm,
+            # where depth is measured: "tooth" (patient tracker) or "base" (the thesis's way)
+            "depth_frame": "tooth" if rt.ctx.tooth is not None else "base",
             **({"tau_d_mnm": drills[0].tau_d_mnm} if drills else {})}
+        if drills and rt.ctx.tooth is None:
+            log.warning("depth in the robot's base frame (no patient tracker): the working "
+                        "length is not protected against the patient moving along the canal",
+                        protocol=p.name)
         tool = rt.cfg.tool
         view = FoxgloveView(tool_6_h=tool_matrix(np.reshape(tool.R_6_H, (3, 3)), tool.tip_6_mm),
                             file_length_mm=float(p.file.length_mm))

@@ -12,6 +12,7 @@ import dataclasses
 import numpy as np
 
 from dentibot.control.kinematics import euler_xyz_deg
+from dentibot.control.strings import LengthLimits
 from dentibot.control.wrench import GravityModel
 from dentibot.runtime.config import RuntimeConfig, ToolGeometry, TreatmentPlan
 from dentibot.runtime.estimate import Devices
@@ -70,7 +71,10 @@ def tooth_config(world: World, tracker: TrackerSimParams) -> ToothConfig:
     """What the runtime knows of the simulated tracker: its anchors and mount (as a calibration
     would have identified them), and the clamp's pose at set-up as the first guess."""
     return ToothConfig(geometry=tracker.geometry, mount_in_flange=tracker.mount_in_flange,
-                       start_pose=StringModel(world, tracker).tooth_in_mount())
+                       start_pose=StringModel(world, tracker).tooth_in_mount(),
+                       limits=LengthLimits(min_mm=tracker.min_length_mm,
+                                           max_mm=tracker.max_length_mm),
+                       sigma_mm=tracker.resolution_mm)
 
 
 class Truth:

@@ -147,6 +147,9 @@ class TrackerConfig(_Strict):
                                      description="origin of {M} in the flange frame (mm)")
     mount_in_flange_deg: tuple[_Angle, _Angle, _Angle] = Field(
         (0.0, 0.0, 0.0), description="{M} in the flange frame, x-y-z Euler angles (deg)")
+    tooth_in_mount_mm: _Xyz = Field(
+        (0.0, 0.0, 90.0), description="where the clamp {T} is in {M} at set-up (mm, axes "
+                                      "parallel): the first guess of the pose solve")
     resolution_mm: float = Field(DEFAULT_RESOLUTION_MM, ge=0.0001, le=1.0,
                                  description="measuring step (mm per unit)")
     drum_mm_per_rev: float = Field(DEFAULT_DRUM_MM_PER_REV, ge=1.0, le=1000.0)

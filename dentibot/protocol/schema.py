@@ -155,6 +155,13 @@ class PhantomSpec(Strict):
 class PatientSpec(Strict):
     motion: Literal["static", "square", "head"] = Field(
         "static", description="phantom motion: none, thesis experiment 1 square, head sway")
+    tracker: bool = Field(
+        False, description="measure depth in the tooth's frame with the patient tracker (the "
+                           "built-in simulator adds a simulated one; on devices the device "
+                           "file's tracker section is required); without it depth is taken "
+                           "in the robot's base frame, as in the thesis, and the working "
+                           "length is not protected against the patient moving along the "
+                           "canal")
 
 
 class StalePeriods(Strict):

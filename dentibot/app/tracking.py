@@ -1,0 +1,32 @@
+"""The patient tracker as the runtime sees it: the tooth-frame depth's configuration from a
+device file's ``tracker:`` section, or from the simulated tracker's geometry."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from dentibot.control.strings import LengthLimits, StringGeometry
+from dentibot.errors import ConfigError
+from dentibot.io.devices import TrackerConfig
+from dentibot.runtime.tooth import ToothConfig
+
+
+def tooth_config_from_devices(t: TrackerConfig) -> ToothConfig:
+    """Anchors, the mount on the flange (mobile x-y-z Euler angles, as the Meca500 states
+    poses), the clamp's set-up position as the first guess, and the strings' limits. Depth in
+    the tooth's frame needs the full pose: six strings (three give the position only)."""
+    if len(t.mount_anchors_mm) < 6:
+        raise ConfigError("tracker.mount_anchors_mm", len(t.mount_anchors_mm),
+                          "six strings for depth in the tooth's frame (three give the "
+                          "tooth's position only, not the canal axis's direction)")
+    mount = np.eye(4)
+    mount[:3, :3] = Rotation.from_euler("XYZ", t.mount_in_flange_deg, degrees=True).as_matrix()
+    mount[:3, 3] = t.mount_in_flange_mm
+    start = np.eye(4)
+    start[:3, 3] = t.tooth_in_mount_mm
+    return ToothConfig(geometry=StringGeometry(np.array(t.mount_anchors_mm, float),
+                                               np.array(t.tooth_anchors_mm, float)),
+                       mount_in_flange=mount, start_pose=start,
+                       limits=LengthLimits(min_mm=t.min_length_mm, max_mm=t.max_length_mm),
+                       sigma_mm=t.resolution_mm)
