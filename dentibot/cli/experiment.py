@@ -119,6 +119,8 @@ def _abort() -> int:
 
 
 def cmd_alignment(args: argparse.Namespace) -> int:
+    if getattr(args, "bench", False):
+        return _cmd_bench(args)
     try:
         result = res.alignment_experiment(
             config=args.config, speeds=args.speeds, seeds=args.seeds, seed=args.seed,
@@ -147,6 +149,29 @@ def cmd_alignment(args: argparse.Namespace) -> int:
         con.print(f"{len(result.runs)} runs of {result.runs[0].spec.duration_s:.0f} s "
                   f"simulated in {result.wall_s:.1f} s ({args.workers} workers)")
     return 0 if result.passed else 1
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    config = args.config if args.config in (*al.BENCH_CONFIGS, "all") else "all"
+    try:
+        result = res.bench_alignment_experiment(config=config, seeds=args.seeds,
+                                                seed=args.seed, workers=args.workers,
+                                                progress=_progress(args))
+    except KeyboardInterrupt:
+        return _abort()
+    if args.json:
+        print(json.dumps(result, indent=1))
+        return 0
+    t = Table(title="Experiment 1 on the bench-fitted world (median over seeds)")
+    cfgs = list(result["configs"])
+    t.add_column("figure")
+    for c in cfgs:
+        t.add_column(c, justify="right")
+    for name in al.BENCH_FIGURES:
+        t.add_row(name, *(_f(result["configs"][c]["bench_figures"].get(name), "{:.2f}")
+                          for c in cfgs))
+    _console().print(t)
+    return 0
 
 
 # ---------------------------------------------------------------------------- preclinical
@@ -336,6 +361,9 @@ def add_parser(sub) -> None:
                    help="Table 6.4 configuration (default all)")
     a.add_argument("--speeds", type=_speeds, default=al.SPEEDS_MM_S, metavar="V,V",
                    help="platform speeds of the squares in mm/s (default 3,4,5,6)")
+    a.add_argument("--bench", action="store_true",
+                   help="run A, B, C and C_K250 as the thesis's bench ran them on the "
+                        "bench-fitted world and print the recordings' figures")
     _common(a)
     a.set_defaults(func=cmd_alignment)
     p = esub.add_parser("preclinical", help="experiment 2: six phantoms A-F, two rounds of "

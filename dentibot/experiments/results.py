@@ -24,6 +24,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from dentibot.control.feedrate import FILE_STRENGTH_MNM
 from dentibot.errors import ConfigError
 from dentibot.experiments import alignment as al
@@ -362,3 +364,35 @@ def run_experiment(name: str, *, progress: Progress | None = None,
         if key not in known:
             raise ConfigError("option", key, f"one of {', '.join(known)}")
     return EXPERIMENTS[name](progress=progress, cancel=cancel, **options)
+
+
+# ---------------------------------------------------------------------------- the bench
+def bench_alignment_experiment(*, config: str = "all", seeds: int = 1, seed: int = 1,
+                               workers: int | None = None, progress: Progress | None = None,
+                               cancel: threading.Event | None = None) -> dict:
+    """Experiment 1 on the bench-fitted world (:mod:`dentibot.sim.bench_physics`), configs
+    A, B, C and C_K250 as the thesis's bench ran them: per config ``bench_figures``, the
+    median over ``seeds`` runs of each of the recordings' per-trial figures
+    (:func:`~dentibot.experiments.alignment.bench_figures`)."""
+    configs = list(al.BENCH_CONFIGS) if config == "all" else [
+        _choice("config", config, (*al.BENCH_CONFIGS, "all"))]
+    seed_list = _seeds(seeds, seed)
+    specs = [al.BenchSpec(config=c, seed=s) for c in configs for s in seed_list]
+    started = time.perf_counter()
+
+    def done(spec: al.BenchSpec, figs: dict) -> None:
+        _say(progress, f"bench config {spec.config} seed {spec.seed}: Z out "
+                       + "/".join(f"{figs[f'sq{k}_z_out_max_mm']:.2f}" for k in (1, 2, 3, 4))
+                       + " mm")
+
+    runs = run_all(al.run_bench, specs, workers=_workers(workers), done=done, cancel=cancel)
+    out: dict[str, Any] = {}
+    for c in configs:
+        rs = [r for sp, r in zip(specs, runs) if sp.config == c]
+        med = {}
+        for name in rs[0]:
+            vals = [r[name] for r in rs if r[name] is not None]
+            med[name] = float(np.median(vals)) if vals else None
+        out[c] = {"bench_figures": med, "seeds": seed_list}
+    return clean({"experiment": "alignment", "world": "bench", "seeds": seed_list,
+                  "configs": out, "wall_s": time.perf_counter() - started})

@@ -2,7 +2,9 @@
 
 Behaviour modelled (Meca500 R3 programming manual):
 - velocity mode (MoveJointsVel): the commanded joint rates are held for ``vel_timeout_s``
-  (SetVelTimeout, default 0.05 s), then the arm decelerates to rest;
+  (SetVelTimeout, default 0.05 s), then the arm decelerates to rest; optionally a command
+  waits ``vel_dead_time_s`` in the robot's queue and the trajectory filter realises
+  ``vel_gain`` of it (the bench-fitted arm; defaults: no delay, unit gain);
 - position mode (MoveJoints): joint-space motion to the target, all joints scaled together so
   that none exceeds its speed limit times ``pos_speed_scale`` (SetJointVel, as a fraction);
 - a joint that would pass its limit stops the arm at the limit and latches error 1007;
@@ -16,6 +18,7 @@ Joint speeds (Meca500 manual) are never exceeded, including during the servo lag
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 from dentibot.control.kinematics import Meca500
@@ -39,6 +42,13 @@ class ArmParams:
     rest_deg_s: float = 0.001
     # assumption: MoveJoints position loop time constant (s) before the speed clamp.
     position_tau_s: float = 0.008
+    # Velocity interface (MoveJointsVel) as a real Meca500 realises it: a command waits
+    # ``vel_dead_time_s`` in the robot's command queue before its trajectory filter (the
+    # first-order ``servo_tau_s`` above) starts to follow it, and the filter settles at
+    # ``vel_gain`` times the command. Defaults: no queue delay, unit gain (the ideal arm).
+    # The bench preset (:mod:`dentibot.sim.bench_physics`) sets the fitted values.
+    vel_dead_time_s: float = 0.0
+    vel_gain: float = 1.0
 
 
 class SimArmModel:
@@ -60,6 +70,8 @@ class SimArmModel:
         self.moving = False
         #: position mode speed limit as a fraction of ``vmax`` (SetJointVel / 100)
         self.pos_speed_scale = 1.0
+        #: velocity commands waiting in the robot's queue: (time they take effect, rates)
+        self._queue: deque = deque()
 
     # ------------------------------------------------------------------ commands
     def command_velocity(self, qdot_deg_s, t: float) -> bool:
@@ -67,8 +79,15 @@ class SimArmModel:
         if self.error_code:
             return False
         v = [float(x) for x in qdot_deg_s]
-        self.vel_cmd = [max(-m, min(m, x)) for x, m in zip(v, self.vmax)]
-        self.vel_cmd_t = t
+        v = [max(-m, min(m, x)) for x, m in zip(v, self.vmax)]
+        if self.p.vel_dead_time_s > 0.0:
+            if self.mode != "vel":
+                self.vel_cmd = [0.0] * 6
+                self.vel_cmd_t = t
+            self._queue.append((t + self.p.vel_dead_time_s, v))
+        else:
+            self.vel_cmd = v
+            self.vel_cmd_t = t
         self.mode = "vel"
         return True
 
@@ -83,10 +102,12 @@ class SimArmModel:
     def stop(self) -> None:
         self.mode = "idle"
         self.vel_cmd = [0.0] * 6
+        self._queue.clear()
 
     def reset_error(self) -> None:
         self.error_code = 0
         self.mode = "idle"
+        self._queue.clear()
 
     def teleport(self, q_deg) -> None:
         """Put the arm at ``q_deg`` at rest (tests and scenario set-up only)."""
@@ -94,6 +115,7 @@ class SimArmModel:
         self.qdot = [0.0] * 6
         self.target = list(self.q)
         self.mode = "idle"
+        self._queue.clear()
 
     # ------------------------------------------------------------------ dynamics
     def step(self, t: float, ts: float) -> None:
@@ -101,7 +123,13 @@ class SimArmModel:
         if self.error_code or self.mode == "idle":
             ref = (0.0,) * 6
         elif self.mode == "vel":
+            queue = self._queue
+            while queue and queue[0][0] <= t + 1e-9:      # commands leaving the queue
+                self.vel_cmd_t, self.vel_cmd = queue.popleft()
             ref = self.vel_cmd if t - self.vel_cmd_t <= self.p.vel_timeout_s else (0.0,) * 6
+            g = self.p.vel_gain
+            if g != 1.0:
+                ref = [g * r for r in ref]
         else:
             k = 1.0 / max(self.p.position_tau_s, ts)
             ref = [(a - b) * k for a, b in zip(self.target, q)]
@@ -149,6 +177,7 @@ class SimArmModel:
             self.error_code = code
         self.mode = "idle"
         self.vel_cmd = [0.0] * 6
+        self._queue.clear()
 
     def reading(self) -> tuple[tuple, tuple]:
         """Quantised (q_deg, qdot_deg_s) as the controller sees them."""

@@ -114,6 +114,24 @@ class CanalParams:
     # k/b * force): with several mm^2 engaged its gain exceeds 1 per tick and the axial
     # force rings between the sensor's +-60 N limits at the canal bottom.
     feed_filter_s: float = 0.05
+    # Canal drag on the file (all zero by default: no drag). The file slides along the canal
+    # at the slip rate ``u`` (mm/s, + deeper; the depth rate low-passed with
+    # ``drag_filter_s``); the walls resist it with ``drag_n_s_per_mm * u + drag_coulomb_n *
+    # tanh(u / drag_v0_mm_s)`` (N). While the root recedes from the file (u < 0) that pulls
+    # the file along into the canal: the contact force in {H} turns to tension. A file that
+    # does not turn also sticks: the Coulomb part is ``drag_static_factor`` times larger
+    # (static friction; a turning file breaks it). Laterally the walls damp the file's
+    # sliding across the canal with ``drag_lat_n_s_per_mm`` (N per mm/s) while it touches
+    # them. The bench preset (:mod:`dentibot.sim.bench_physics`) holds the fitted values.
+    drag_n_s_per_mm: float = 0.0
+    drag_coulomb_n: float = 0.0
+    drag_v0_mm_s: float = 0.5
+    drag_static_factor: float = 1.0
+    drag_lat_n_s_per_mm: float = 0.0
+    drag_filter_s: float = 0.004
+    # Torque (mNm) the canal bottom resists rotation with per N the tip is pressed onto it
+    # (the file's tip grinding at the apical stop); 0 by default.
+    bottom_torque_mnm_per_n: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 < self.working_length_mm <= 30.0:
@@ -227,6 +245,12 @@ class Canal:
         self._tau_cut = 0.0        # cutting torque of the last interaction (mNm)
         self._tau_edges = 0.0      # torque on the flutes' edges: cutting + rubbing (mNm)
         self._file_key = None
+        self._slip = 0.0           # filtered axial slip rate (mm/s, + deeper)
+        self._last_e = None        # lateral offset of the tip (u, v) last step (mm)
+        self._drag = (p.drag_n_s_per_mm or p.drag_coulomb_n or p.drag_lat_n_s_per_mm
+                      or p.bottom_torque_mnm_per_n)
+        #: whether the file turns (set by the world each step): a still file sticks
+        self.turning = True
         #: counts the changes of the lumen ``R`` (each :meth:`cut` that removes material; code
         #: that writes ``R`` itself adds one too): what is derived from the lumen alone
         #: (completeness, shaping) is the same while it is unchanged, so a caller may keep it
@@ -299,10 +323,13 @@ class Canal:
         feed = self._feed
         self._last_depth = s_tip
         self._tau_cut = self._tau_edges = 0.0
+        if self._drag:
+            self._slip += (raw - self._slip) * (dt / (p.drag_filter_s + dt))
         if s_tip <= 0.0:
             self.debris_mm3 = 0.0
             self._entered = False
             self._flush_ref = 0.0
+            self._last_e = None
             return out
         if s_tip > self._flush_ref:
             self._flush_ref = s_tip
@@ -369,13 +396,34 @@ class Canal:
         fa = (p.axial_n_per_mm2 * area + p.axial_n_per_mm3 * deb) * feed / (abs(feed) + 0.05)
         fa += p.axial_n_s_per_mm3 * feed * area
         if s_tip > self.bottom_mm:
-            fa += p.bottom_n_mm * (s_tip - self.bottom_mm)
+            f_bottom = p.bottom_n_mm * (s_tip - self.bottom_mm)
+            fa += f_bottom
+            out.resist_mnm += p.bottom_torque_mnm_per_n * f_bottom
+        if self._drag:
+            fa += self._drag_forces(out, eu, ev, dt)
         out.f_axial_n = fa
         if self.curved:
             strain = self.kappa[i0:i_tip] * (g + self.R[i0:i_tip])  # r_f / rho = d / (2 rho)
             out.max_strain = float(strain.max()) if strain.size else 0.0
         self._win = (i0, i_tip, overlap)
         return out
+
+    def _drag_forces(self, out: Interaction, eu: float, ev: float, dt: float) -> float:
+        """Canal drag (see the drag fields of :class:`CanalParams`): adds the lateral damping
+        to ``out.f_lat`` and returns the axial drag (N, + pushes the file out)."""
+        p = self.p
+        u = self._slip
+        fc = p.drag_coulomb_n * (1.0 if self.turning else p.drag_static_factor)
+        fa = p.drag_n_s_per_mm * u + fc * math.tanh(u / p.drag_v0_mm_s)
+        last, self._last_e = self._last_e, (eu, ev)
+        if p.drag_lat_n_s_per_mm and last is not None and any(out.f_lat):
+            c = p.drag_lat_n_s_per_mm / dt
+            du, dv = (eu - last[0]) * c, (ev - last[1]) * c
+            uu, vv = self.u, self.v
+            fl = out.f_lat
+            out.f_lat = (fl[0] - du * uu[0] - dv * vv[0], fl[1] - du * uu[1] - dv * vv[1],
+                         fl[2] - du * uu[2] - dv * vv[2])
+        return fa
 
     def cut(self, revolutions: float) -> float:
         """Apply ``revolutions`` of file rotation (signed, + cutting) after ``interact``.

@@ -52,6 +52,12 @@ class HandpieceParams:
     # assumption: position moves (reversal) run at 100 rpm at the file.
     move_rpm: float = 100.0
     max_rpm: float = MAX_FILE_RPM
+    # The current measurement only (not the motor's physics): a constant reading offset (A)
+    # and a slow sinusoidal wander of ``current_wander_a`` amplitude and
+    # ``current_wander_period_s`` period with a seeded phase. Defaults: none.
+    current_offset_a: float = 0.0
+    current_wander_a: float = 0.0
+    current_wander_period_s: float = 30.0
 
     @property
     def torque_per_amp_mnm(self) -> float:
@@ -83,6 +89,11 @@ class HandpieceModel:
         self.current_limit_a = params.current_limit_a
         self._noise = rng.standard_normal(4096) * params.current_noise_a
         self._k = 0
+        self._t = 0.0
+        self._wander_phase = 0.0
+        if params.current_wander_a:
+            self._wander_phase = float(np.random.default_rng(rng.integers(1 << 30)).uniform(
+                0.0, 2.0 * math.pi))
 
     def set_velocity(self, rpm: float) -> None:
         rpm = float(rpm)
@@ -156,4 +167,8 @@ class HandpieceModel:
         fsgn = (w > 0.5) - (w < -0.5)
         self.current_a = (self.torque_mnm / p.torque_per_amp_mnm + p.friction_current_a * fsgn
                           + float(self._noise[k]))
+        if p.current_offset_a or p.current_wander_a:
+            self._t += ts
+            self.current_a += p.current_offset_a + p.current_wander_a * math.sin(
+                2.0 * math.pi * self._t / p.current_wander_period_s + self._wander_phase)
         return dpos

@@ -94,3 +94,60 @@ class HeadMotion:
             a * sum(math.sin(f * t + p) - b for f, p, b in zip(fr, ph, bs))
             for fr, ph, bs in zip(self._f, self._ph, self._base)
         )
+
+
+class BenchSquarePath:
+    """The thesis bench's platform as it really moved in experiment 1 (fitted, see
+    :mod:`dentibot.sim.bench_physics`): a closed loop in the platform's vertical plane, the
+    same shape in every square, run in ``durations_s`` per square with ``pauses_s`` between.
+
+    The shape is a periodic piecewise-linear curve of the square's time phase
+    ``phi = (t - t_square) / duration`` in [0, 1): ``knots_mm`` are its (x, y, z) at
+    ``phi = i / n`` (Stewart frame: x the square's horizontal travel, y out of the plane, z
+    the platform normal, up). Wavy legs, the drift off the plane and the speed changes along
+    the loop are all in the knots. The Stewart frame is turned ``frame_yaw_deg`` about base z
+    from the robot's base -y axis (x_S = Rz(yaw) (0, -1, 0)); z_S is base z. Before
+    ``start_s`` and after the end the phantom rests at the origin.
+    """
+
+    def __init__(self, knots_mm, durations_s, pauses_s, frame_yaw_deg: float = 0.0,
+                 start_s: float = 0.0) -> None:
+        k = np.asarray(knots_mm, float)
+        if k.ndim != 2 or k.shape[1] != 3 or len(k) < 4:
+            raise ValueError("knots_mm: n x 3 (x, y, z), n >= 4")
+        self.knots = np.vstack([k, k[:1]])            # closed
+        self.n = len(k)
+        self.durations_s = tuple(float(d) for d in durations_s)
+        pauses = tuple(float(p) for p in pauses_s)
+        if len(pauses) != len(self.durations_s) - 1:
+            raise ValueError("one pause between consecutive squares")
+        self.start_s = float(start_s)
+        starts, t = [], 0.0
+        for i, d in enumerate(self.durations_s):
+            starts.append(t)
+            t += d + (pauses[i] if i < len(pauses) else 0.0)
+        self.square_starts_s = tuple(starts)
+        self.duration_s = t
+        c, s = math.cos(math.radians(frame_yaw_deg)), math.sin(math.radians(frame_yaw_deg))
+        self.ex, self.ey = (s, -c, 0.0), (c, s, 0.0)
+        self._k = self.knots.tolist()
+
+    def stewart_mm(self, t: float) -> tuple[float, float, float]:
+        """Platform position (mm, Stewart frame) at world time ``t``."""
+        t -= self.start_s
+        if t <= 0.0 or t >= self.duration_s:
+            return (0.0, 0.0, 0.0)
+        for t0, d in zip(self.square_starts_s, self.durations_s):
+            if t0 <= t < t0 + d:
+                u = (t - t0) / d * self.n
+                i = int(u)
+                f = u - i
+                a, b = self._k[i], self._k[i + 1]
+                return (a[0] + (b[0] - a[0]) * f, a[1] + (b[1] - a[1]) * f,
+                        a[2] + (b[2] - a[2]) * f)
+        return tuple(self._k[0])
+
+    def offset_mm(self, t: float) -> tuple[float, float, float]:
+        x, y, z = self.stewart_mm(t)
+        ex, ey = self.ex, self.ey
+        return (x * ex[0] + y * ey[0], x * ex[1] + y * ey[1], z)

@@ -188,7 +188,10 @@ class World:
             axis_p = (r0[0] * ax[0] + r1[0] * ax[1] + r2[0] * ax[2],
                       r0[1] * ax[0] + r1[1] * ax[1] + r2[1] * ax[2],
                       r0[2] * ax[0] + r1[2] * ax[1] + r2[2] * ax[2])
-            it = self.canal.interact(tip_p, axis_p, self.file, ts)
+            canal = self.canal
+            if canal._drag:
+                canal.turning = hp.omega_rpm != 0.0
+            it = canal.interact(tip_p, axis_p, self.file, ts)
             self.interaction = it
             resist = it.resist_mnm
             dpos = hp.step(ts, resist, resist * self.canal.p.reverse_factor)

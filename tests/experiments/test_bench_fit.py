@@ -1,0 +1,65 @@
+"""The bench-fitted world against the thesis lab's recordings of experiment 1.
+
+Reads the recordings' per-trial figures from ../shared/bench (relative to the repository);
+skips when they are absent."""
+
+import csv
+import functools
+from pathlib import Path
+
+import pytest
+
+from dentibot.experiments.alignment import (
+    BENCH_CONFIGS,
+    BENCH_GROUPS,
+    BenchSpec,
+    compare_bench,
+    run_bench,
+)
+
+BENCH_DIR = Path(__file__).resolve().parents[2].parent / "shared" / "bench"
+TRIALS = BENCH_DIR / "exp1_trials.csv"
+
+
+def _rows(config):
+    if not TRIALS.exists():
+        pytest.skip("bench recordings absent")
+    with TRIALS.open() as fh:
+        return [r for r in csv.DictReader(fh) if r["group"] == BENCH_GROUPS[config]]
+
+
+def test_compare_definitions():
+    rows = _rows("A")
+    sim = {k: float(rows[0][k]) for k in ("Fh_z_mean_N", "torque_median_mNm")}
+    cmp = {c["figure"]: c for c in compare_bench(sim, rows)}
+    assert cmp["Fh_z_mean_N"]["inside"] and cmp["torque_median_mNm"]["inside"]
+    assert cmp["rel_x_maxabs_mm"]["sim"] is None and not cmp["rel_x_maxabs_mm"]["inside"]
+
+
+#: Share of the applicable figures inside the widened real range that the fitted world
+#: reaches today (A 74 %, B 76 %, C 72 %, C_K250 62 %, seed 1): a floor against regressions.
+REACHED = {"A": 0.70, "B": 0.70, "C": 0.70, "C_K250": 0.60}
+
+
+@functools.cache
+def _share(config):
+    rows = _rows(config)
+    cmp = compare_bench(run_bench(BenchSpec(config)), rows)
+    inside = sum(c["inside"] for c in cmp)
+    return inside / len(cmp), [c["figure"] for c in cmp if not c["inside"]]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("config", BENCH_CONFIGS)
+def test_bench_figures_keep_todays_share_within_the_real_range(config):
+    share, out = _share(config)
+    assert share >= REACHED[config], f"{share:.0%} inside; out: {out}"
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="the fitted world is not there yet: lateral tracking "
+                   "2-3x too good, the tilt admittance drifts, no 3 Hz Fz oscillation")
+@pytest.mark.parametrize("config", BENCH_CONFIGS)
+def test_bench_figures_within_real_range(config):
+    share, out = _share(config)
+    assert share >= 0.9, f"{share:.0%} inside; out: {out}"
