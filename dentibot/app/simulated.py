@@ -18,14 +18,15 @@ from dentibot.runtime.config import RuntimeConfig, ToolGeometry, TreatmentPlan
 from dentibot.runtime.estimate import Devices
 from dentibot.runtime.tooth import ToothConfig
 from dentibot.sim.devices import make_devices
+from dentibot.sim.faults import Jerk
 from dentibot.sim.tracker_device import SimPatientTracker, StringModel, TrackerSimParams
 from dentibot.sim.patient import SQUARE_MM, StewartSquare
 from dentibot.sim.serve import ServePorts, VirtualDentiBot
 from dentibot.sim.world import World, WorldConfig
 
 #: The parts of the simulated world that workflows set up themselves (experiment 1's Stewart
-#: platform square), handed on so that nothing above this layer imports the simulator.
-__all__ = ["SQUARE_MM", "StewartSquare", "Truth", "World", "WorldConfig", "plan_config",
+#: platform square, a patient's jerk), handed on so that nothing above this layer imports the simulator.
+__all__ = ["Jerk", "SQUARE_MM", "StewartSquare", "Truth", "World", "WorldConfig", "plan_config",
            "serve_wire", "sim_devices", "tool_geometry_of", "true_gravity_model"]
 
 

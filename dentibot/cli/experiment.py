@@ -25,6 +25,7 @@ from rich.console import Console
 from rich.table import Table
 
 from dentibot.control.feedrate import FILE_STRENGTH_MNM
+from dentibot.cli.common import user_errors
 from dentibot.errors import ConfigError
 from dentibot.experiments import alignment as al
 from dentibot.experiments import preclinical as pc
@@ -172,6 +173,36 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                           for c in cfgs))
     _console().print(t)
     return 0
+
+
+# ---------------------------------------------------------------------------- patient jerk
+@user_errors
+def cmd_patient_jerk(args: argparse.Namespace) -> int:
+    try:
+        result = res.patient_jerk_experiment(mm=args.mm, mm_s=args.mm_s, seed=args.seed,
+                                             workers=args.workers, progress=_progress(args))
+    except KeyboardInterrupt:
+        return _abort()
+    if args.json:
+        print(json.dumps(result.to_dict(), indent=1))
+        return 0 if result.passed else 1
+    t = Table(title=f"The tooth steps {args.mm:g} mm towards the robot along the canal at "
+                    f"{args.mm_s:g} mm/s while the file works at the working length")
+    for col in ("mode", "overshoot mm", "past WL s", "depth error mm", "fractures",
+                "peak mNm", "state after the watch"):
+        t.add_column(col, justify="right")
+    for m, r in result.runs.items():
+        t.add_row(m, f"{r.overshoot_mm:.2f}", f"{r.past_wl_s:.2f}",
+                  _f(r.depth_error_mm, "{:.2f}"), str(r.fractures),
+                  f"{r.peak_torque_mNm:.1f}", r.final_state)
+    con = _console()
+    con.print(t)
+    con.print("force: depth in the robot's base frame (the thesis); tracked: depth in the "
+              "tooth's frame from the patient tracker. overshoot: the deepest true tip depth "
+              "past the working length; past WL: time more than 0.2 mm past it; depth error: "
+              "true minus measured, 0.5 s after the jerk.")
+    con.print(_checks_table(result.checks))
+    return 0 if result.passed else 1
 
 
 # ---------------------------------------------------------------------------- preclinical
@@ -366,6 +397,18 @@ def add_parser(sub) -> None:
                         "bench-fitted world and print the recordings' figures")
     _common(a)
     a.set_defaults(func=cmd_alignment)
+    j = esub.add_parser("patient-jerk", help="the tooth jerks towards the robot along the "
+                        "canal while the file works at the working length: depth in the "
+                        "robot's frame against depth in the tooth's frame (patient tracker)")
+    j.add_argument("--mm", type=float, default=3.0, help="the jerk's travel (mm, default 3)")
+    j.add_argument("--mm-s", type=float, default=20.0,
+                   help="the jerk's speed (mm/s, default 20)")
+    j.add_argument("--seed", type=int, default=1, help="the simulated world's seed (default 1)")
+    j.add_argument("--workers", type=_positive, default=min(2, default_workers()),
+                   metavar="W", help="parallel local processes (default: up to 2, one per mode)")
+    j.add_argument("--json", action="store_true", help="print the results as one JSON object")
+    j.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    j.set_defaults(func=cmd_patient_jerk)
     p = esub.add_parser("preclinical", help="experiment 2: six phantoms A-F, two rounds of "
                         "300 s and 200 s (Table 6.5)")
     p.add_argument("--strategy", choices=[*pc.STRATEGIES, "all"], default="automated",

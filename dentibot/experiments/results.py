@@ -29,6 +29,7 @@ import numpy as np
 from dentibot.control.feedrate import FILE_STRENGTH_MNM
 from dentibot.errors import ConfigError
 from dentibot.experiments import alignment as al
+from dentibot.experiments import patient_jerk as pj
 from dentibot.experiments import preclinical as pc
 from dentibot.experiments.common import Check, default_workers, run_all
 from dentibot.protocol.schema import MATERIAL_NAMES
@@ -342,9 +343,52 @@ def preclinical_experiment(*, strategy: str = "automated", material: str | dict 
     return result
 
 
+# ---------------------------------------------------------------------------- patient jerk
+@dataclass
+class PatientJerkResult:
+    """Both modes of :mod:`dentibot.experiments.patient_jerk` on the same jerk."""
+
+    runs: dict[str, pj.JerkRun]
+    checks: list[Check]
+    spec: pj.JerkSpec
+    wall_s: float
+
+    @property
+    def passed(self) -> bool:
+        return all(c.passed for c in self.checks)
+
+    def to_dict(self) -> dict:
+        return clean({"experiment": "patient-jerk", "mm": self.spec.mm,
+                      "mm_s": self.spec.mm_s, "seed": self.spec.seed,
+                      "watch_s": self.spec.watch_s,
+                      "modes": {m: r.to_dict() for m, r in self.runs.items()},
+                      "checks": _checks_dicts(self.checks), "wall_s": self.wall_s})
+
+
+def patient_jerk_experiment(*, mm: float = 3.0, mm_s: float = 20.0, seed: int = 1,
+                            workers: int | None = None, progress: Progress | None = None,
+                            cancel: threading.Event | None = None) -> PatientJerkResult:
+    """The tooth steps ``mm`` towards the robot along the canal at ``mm_s`` while the file
+    works at the working length, with depth in the base frame (``force``) and in the tooth's
+    frame (``tracked``)."""
+    in_range("mm", [mm], "mm", 10.0)
+    in_range("mm_s", [mm_s], "mm/s", 200.0)
+    specs = [pj.JerkSpec(mode=m, mm=mm, mm_s=mm_s, seed=seed) for m in pj.MODES]
+    started = time.perf_counter()
+
+    def done(spec: pj.JerkSpec, run: pj.JerkRun) -> None:
+        _say(progress, f"{spec.mode}: overshoot {run.overshoot_mm:.2f} mm, "
+                       f"{run.past_wl_s:.2f} s past the working length")
+
+    runs = run_all(pj.run_jerk, specs, workers=_workers(workers), done=done, cancel=cancel)
+    by = {r.mode: r for r in runs}
+    return PatientJerkResult(by, pj.checks(by), specs[0], time.perf_counter() - started)
+
+
 # ---------------------------------------------------------------------------- by name
-EXPERIMENTS: dict[str, Callable[..., AlignmentResult | PreclinicalResult]] = {
-    "alignment": alignment_experiment, "preclinical": preclinical_experiment}
+EXPERIMENTS: dict[str, Callable[..., AlignmentResult | PreclinicalResult | PatientJerkResult]] = {
+    "alignment": alignment_experiment, "preclinical": preclinical_experiment,
+    "patient-jerk": patient_jerk_experiment}
 
 
 def options_of(name: str) -> tuple[str, ...]:

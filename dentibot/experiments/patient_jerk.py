@@ -1,0 +1,133 @@
+"""The patient jerks towards the robot while the file works at the working length.
+
+The tooth steps ``mm`` (default 3 mm) along the canal axis towards the robot at ``mm_s``
+(default 20 mm/s) the moment the file's measured depth comes within 0.3 mm of the working
+length, on the built-in simulator (the default canal, working length 16 mm). Two modes run
+the same motion:
+
+- ``force``: the thesis's depth, in the robot's base frame; the file follows the tooth by
+  force alone and the tooth's travel along the axis goes unseen;
+- ``tracked``: depth in the tooth's frame from the patient tracker
+  (:mod:`dentibot.runtime.tooth`): the working-length stop follows the tooth.
+
+Each run is watched for ``watch_s`` (default 3 s) after the jerk, then stopped safely.
+Figures per mode: ``overshoot_mm`` (the deepest true tip depth past the working length, in
+the tooth: the simulator's truth), ``past_wl_s`` (how long the tip stayed more than 0.2 mm
+past it), ``fractures``, ``peak_torque_mNm`` (after the jerk), the depth error (true minus
+measured) half a second after the jerk, and the state the watch ended in.
+
+The simulated canal ends half a millimetre past the working length, so the overshoot is
+bounded by the phantom in both modes: what the tracker changes is that the measured depth
+stays true and the working-length stop ends the treatment, where the force-only mode reads
+the tooth's travel short and keeps the file pressed at the apex.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from dentibot.app.simulated import Jerk
+from dentibot.experiments.common import Check, run_protocol
+from dentibot.protocol.loader import parse_protocol
+
+MODES = ("force", "tracked")
+#: How close to the working length (mm) the measured depth is when the jerk starts.
+NEAR_WL_MM = 0.3
+
+
+@dataclass(frozen=True)
+class JerkSpec:
+    mode: str = "force"
+    mm: float = 3.0
+    mm_s: float = 20.0
+    seed: int = 3
+    watch_s: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode {self.mode!r}: one of {', '.join(MODES)}")
+
+
+@dataclass
+class JerkRun:
+    mode: str
+    overshoot_mm: float
+    past_wl_s: float
+    fractures: int
+    peak_torque_mNm: float
+    depth_error_mm: float | None
+    final_state: str
+    jerk_t_s: float | None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _protocol(spec: JerkSpec):
+    return parse_protocol(
+        f"name: patient-jerk-{spec.mode}\nseed: {spec.seed}\n"
+        f"patient: {{tracker: {'true' if spec.mode == 'tracked' else 'false'}}}\n"
+        "steps:\n  - align: {duration_s: 0.5}\n  - drill: {}\n")
+
+
+def run_jerk(spec: JerkSpec) -> JerkRun:
+    """One mode (see the module docstring)."""
+    p = _protocol(spec)
+    wl = p.phantom.working_length_mm
+    state: dict = {"t0": None, "rows_after": []}
+
+    def tap(row: dict, runner) -> None:
+        w = runner.world
+        if state["t0"] is None:
+            depth = row["depth_mm"]
+            if depth is not None and depth >= wl - NEAR_WL_MM and row["state"].startswith(
+                    "treating.drilling"):
+                _, axis = w.canal_axis_0()
+                w.motion = Jerk(w.motion, w.t, tuple(-x for x in axis), mm=spec.mm,
+                                mm_s=spec.mm_s)
+                state["t0"] = row["t"]
+        elif row["t"] < state["t0"] + spec.watch_s:
+            state["rows_after"].append((row["t"], row["true_depth_mm"], row["depth_mm"],
+                                        row["file_torque_mnm"]))
+            state["final"] = row["state"]
+        else:
+            runner.abort("the watch after the jerk is over")
+
+    result, runner = run_protocol(p, tap)
+    after = state["rows_after"]
+    true = [r[1] for r in after if r[1] is not None]
+    deepest = max(true) if true else float("nan")
+    err = None
+    if state["t0"] is not None:
+        half = [r for r in after if r[0] >= state["t0"] + 0.5 and r[1] is not None
+                and r[2] is not None]
+        if half:
+            err = float(half[0][1] - half[0][2])
+    dt = 1.0 / p.control.rate_hz
+    past = dt * sum(1 for r in after if r[1] is not None and r[1] > wl + 0.2)
+    return JerkRun(spec.mode, max(0.0, deepest - wl), past,
+                   int(runner.world.fractured is not None),
+                   float(max((abs(r[3]) for r in after), default=0.0)), err,
+                   state.get("final", runner.rt.state), state["t0"])
+
+
+def checks(runs: dict[str, JerkRun]) -> list[Check]:
+    """What the patient tracker is for: the working length holds in the tooth (within
+    0.2 mm) when the patient moves along the canal, and without it the overshoot shows."""
+    out = []
+    t, f = runs.get("tracked"), runs.get("force")
+    if t is not None:
+        out.append(Check("with the tracker the tip never passes the working length by more "
+                         "than 0.2 mm (tooth frame)", t.overshoot_mm <= 0.2 and not t.fractures,
+                         f"overshoot {t.overshoot_mm:.2f} mm, fractures {t.fractures}"))
+        out.append(Check("with the tracker the measured depth stays true after the jerk "
+                         "(within 0.2 mm)", t.depth_error_mm is not None
+                         and abs(t.depth_error_mm) <= 0.2,
+                         "true - measured " + ("unknown" if t.depth_error_mm is None
+                                               else f"{t.depth_error_mm:.3f} mm")))
+    if f is not None and t is not None:
+        out.append(Check("without it the file stays past the working length longer",
+                         f.past_wl_s > t.past_wl_s,
+                         f"force {f.past_wl_s:.2f} s against tracked {t.past_wl_s:.2f} s "
+                         f"more than 0.2 mm past it"))
+    return out
