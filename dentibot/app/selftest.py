@@ -7,6 +7,10 @@ first tick whose state left drilling, or whose events name the fault), the react
 transition after the injection), the final state, the file and arm state, and
 ``samples_lost``: ticks the runtime ran minus ticks read back from the MCAP recording (which
 must hold every tick up to and including the fault).
+
+The same faults and more, injected on the wire simulators with the real drivers and in real
+time, and the controller's own process killed, frozen or signalled:
+:mod:`dentibot.app.selftest_wire`.
 """
 
 from __future__ import annotations
@@ -67,6 +71,9 @@ class FaultResult:
     cause: str
     ok: bool
     file_stopped_ms: float | None = None
+    #: the bounds ``ok`` held ``detected_ms`` and ``file_stopped_ms`` to (None: none)
+    detected_bound_ms: float | None = None
+    file_stopped_bound_ms: float | None = None
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -143,61 +150,10 @@ async def run_fault(name: str, seed: int = 1, engage_s: float = 3.0, watch_s: fl
     stopped = final != "fault" or (stopped_ms is not None and stopped_ms <= FILE_STOP_MS)
     return FaultResult(name, detected_ms, reaction, final, w.handpiece.omega_rpm, arm_speed,
                        lost, "; ".join(rt.treatment.fault_causes),
-                       safe and in_time and stopped and lost == 0, stopped_ms)
+                       safe and in_time and stopped and lost == 0, stopped_ms, bound,
+                       FILE_STOP_MS if final == "fault" else None)
 
 
 async def run_catalogue(faults=FAULTS, seed: int = 1) -> list[FaultResult]:
     return [await run_fault(f, seed=seed) for f in faults]
 
-
-#: Faults injected on the wire simulators (real drivers, real time, loopback) and the hook of
-#: the simulator that produces each.
-WIRE_FAULTS = ("ft_stream_stop", "arm_disconnect", "can_silence", "emcy")
-
-
-async def run_wire_fault(name: str, seed: int = 1, settle_s: float = 0.3,
-                         watch_s: float = 2.0) -> FaultResult:
-    """The same check over the wire: ``dentibot sim serve``'s simulators in this process, the
-    four real drivers, the runtime on a real-time clock (idle: all streams read every tick)."""
-    from dentibot.app.simulated import serve_wire, tool_geometry_of, true_gravity_model
-    from dentibot.io.devices import open_devices
-    from dentibot.runtime.config import Thresholds
-    from dentibot.sim.world import World
-
-    if name not in WIRE_FAULTS:
-        raise ValueError(f"unknown wire fault {name!r}; one of {', '.join(WIRE_FAULTS)}")
-    world = World(WorldConfig(seed=seed))
-    # loopback on a shared machine: bounds of 20 periods (40 ms) rather than hardware's 5-10
-    th = Thresholds(stale_periods={"arm": 20, "ft": 20, "motor": 20, "aux": 100})
-    rows: list[dict] = []
-    async with serve_wire(world) as bot, open_devices(bot.devices_config()) as d:
-        proc = Procedure.over(d, RuntimeConfig(tool=tool_geometry_of(world), thresholds=th),
-                              gravity=true_gravity_model(world), sink=rows.append)
-        rt = proc.runtime
-        async with proc:
-            await proc.run_for(settle_s)
-            if rt.state == "fault":
-                raise RuntimeError("wire selftest: the runtime faulted before the injection: "
-                                   + "; ".join(rt.treatment.fault_causes))
-            k0 = rt.ticks
-            if name == "ft_stream_stop":
-                bot.netft.stop_stream()
-            elif name == "arm_disconnect":
-                bot.meca.drop_clients()
-            elif name == "can_silence":
-                bot.epos.muted = True
-            else:
-                bot.epos.inject_emcy(0x2310)
-            await proc.run_for(watch_s, until=lambda r: r.state == "fault")
-            detected = next((r["tick"] for r in rows[k0:] if r["state"] == "fault"), None)
-            await proc.run_for(ticks=25)
-            final = rt.state
-            arm_speed = max(abs(x) for x in world.arm.qdot)
-    ticks = [r["tick"] for r in rows]
-    lost = rt.ticks - len(ticks) + (0 if ticks == list(range(len(ticks))) else 1)
-    detected_ms = None if detected is None else (detected - k0 + 1) * rt.ts * 1e3
-    ok = final == "fault" and detected_ms is not None and lost == 0 and \
-        world.handpiece.cmd_rpm == 0.0 and arm_speed < 1.0
-    return FaultResult(f"wire:{name}", detected_ms, "fault" if detected else "none", final,
-                       world.handpiece.omega_rpm, arm_speed, lost,
-                       "; ".join(rt.treatment.fault_causes), ok)

@@ -250,6 +250,9 @@ class Epos4Node:
         self._inc_per_file_deg = self.gear_ratio * self.counts_per_turn / 360.0
         #: set True to make the node deaf and mute (a cut cable): no answers, no heartbeat.
         self.muted = False
+        #: set True (:meth:`lose_output`) for a power stage that lost its supply: the motor
+        #: coasts, the drive still reports OPERATION ENABLED and sends no EMCY.
+        self.output_lost = False
         # counters
         self.syncs_received = 0
         self.syncs_answered = 0      # SYNCs at which at least one TxPDO was sent
@@ -353,6 +356,14 @@ class Epos4Node:
         if not 0 < code <= 0xFFFF:
             raise ConfigError("epos4_node.emcy_code", code, "1..0xFFFF (0 means no error)")
         self._fault(code, register, manufacturer)
+
+    def lose_output(self, lost: bool = True) -> None:
+        """The motor loses its power (a supply or motor cable fault the drive does not
+        detect): it coasts to rest and follows no command, while the statusword still says
+        operation enabled and no EMCY goes out. ``lose_output(False)`` restores it."""
+        self.output_lost = lost
+        if lost:
+            self.world.handpiece.stop()
 
     def set_sto(self, source: str, open_: bool) -> None:
         """Open (or close) the safe-torque-off input on behalf of ``source`` (a name, e.g.
@@ -976,7 +987,7 @@ class Epos4Node:
 
     def _follow_velocity(self, cw: int) -> None:
         hp = self.world.handpiece
-        if cw & CW_HALT:
+        if cw & CW_HALT or self.output_lost:
             hp.stop()
             return
         rpm = self._od[co.obj("target_velocity").address] / self.gear_ratio
@@ -986,6 +997,9 @@ class Epos4Node:
 
     def _run_mode(self, cw: int, prev_cw: int) -> None:
         hp = self.world.handpiece
+        if self.output_lost:
+            hp.stop()                            # no power: the motor coasts
+            return
         mode = self._mode_display
         if mode == Mode.PROFILE_VELOCITY:
             self._follow_velocity(cw)

@@ -68,6 +68,10 @@ is in ``docs/meca500-simulator.md``):
   longer than ``max_frame_len`` [3003]; nothing crashes the server. A client that stops reading
   is disconnected once ``max_client_buffer`` bytes are waiting for it.
 
+Fault hooks: ``freeze()`` makes the link half-open (connections kept, nothing sent, nothing
+received handled); ``refuse_next(command, code)`` answers the next such command with an
+error code instead of executing it.
+
 Not simulated (answered [1001]): the other commands (SetConf, SetConfTurn, GetRtConf, the
 gripper and I/O commands, MoveLinVelTrf/Wrf, ...); SetRealTimeMonitoring(all) is refused
 ([1003]: arguments are numbers only).
@@ -238,7 +242,7 @@ class _Conn(asyncio.Protocol):
         return self.transport is not None and not self.transport.is_closing()
 
     def send(self, data: bytes) -> bool:
-        if not self.open:
+        if not self.open or self.server.frozen:
             return False
         if self.transport.get_write_buffer_size() > self.server.max_client_buffer:
             self.server.dropped_clients += 1
@@ -347,6 +351,10 @@ class Meca500Server:
         self.dropped_clients = 0     # slow clients disconnected
         self.control_drops = 0       # control connections lost (link drop or close)
         self.watchdog_expiries = 0   # connection watchdog safety stops
+        #: a half-open link (:meth:`freeze`): nothing goes out, nothing received is handled
+        self.frozen = False
+        #: (command name, error code): the next such command is refused with that code
+        self._refuse: tuple[str, int] | None = None
 
     # ------------------------------------------------------------------ lifecycle
     async def start(self) -> None:
@@ -416,6 +424,19 @@ class Meca500Server:
         for c in list(self._conns):
             if c.transport is not None:
                 c.transport.abort()
+
+    def freeze(self, frozen: bool = True) -> None:
+        """The link goes half-open (a cable cut without a reset, a hung network stack): the
+        connections stay open, but no answer, status or monitoring cycle goes out and nothing
+        received is handled. The robot itself goes on: its velocity timeout stops a
+        MoveJointsVel, its connection watchdog stops the arm (the sockets it then closes never
+        tell the client). ``freeze(False)`` ends it."""
+        self.frozen = frozen
+
+    def refuse_next(self, command: str = "MoveJointsVel", code: int = 1000) -> None:
+        """Refuse the next ``command`` with error ``code`` (default [1000] "Command buffer is
+        full.") instead of executing it, e.g. a velocity command failing mid-cycle."""
+        self._refuse = (command, code)
 
     def inject(self, data: bytes, to: str = "monitor") -> None:
         """Send raw bytes to the control client (``to="control"``) or every monitoring
@@ -494,6 +515,8 @@ class Meca500Server:
         self._publish_status()
 
     def _on_data(self, conn: _Conn, data: bytes) -> None:
+        if self.frozen:
+            return
         if conn.kind != "control":
             if not conn.greeted:
                 self._greet_monitor(conn, True)
@@ -555,6 +578,10 @@ class Meca500Server:
             return
         if spec.queued and len(self._queue) >= MAX_QUEUE:
             self._send_ctrl(1000, self._error_text(1000))
+            return
+        if self._refuse is not None and self._refuse[0] == spec.name:
+            code, self._refuse = self._refuse[1], None
+            self._send_ctrl(code, self._error_text(code, text))
             return
         self._handlers[cmd.key](conn, cmd.args, text)
         self._poll()
@@ -1012,8 +1039,8 @@ class Meca500Server:
         self.watchdog_s = 0.0
         self._link_lost("connection watchdog expired")
         self._set_safety_stop(True)
-        if ctrl is None:
-            return
+        if ctrl is None or self.frozen:
+            return                              # a half-open link: the client never learns
         host = ctrl.peer[0] if isinstance(ctrl.peer, tuple) else ctrl.peer
         for c in [ctrl, *self._monitors]:
             peer_host = c.peer[0] if isinstance(c.peer, tuple) else c.peer

@@ -4,7 +4,10 @@ The wire simulators (:class:`~dentibot.sim.serve.VirtualDentiBot`) run in this p
 World; the controller runs in a child process (``dentibot run PROTOCOL --devices FILE``, the
 product's own command, or a small driver script). The child is killed (SIGKILL) or frozen
 (SIGSTOP) while the file turns at 60 rpm, and the handpiece speed is sampled here, at every
-World step, in the simulator's process: how long the file turns after the signal.
+World step, in the simulator's process: how long the file turns after the signal. The
+simulators, the child and the speed log are the wire selftest's
+(:mod:`dentibot.app.selftest_wire`, whose ``host_kill`` and ``host_freeze`` entries measure
+the same).
 
 Bounds are derived from the configured times and the simulated physics, never from what a
 run printed:
@@ -22,40 +25,36 @@ run printed:
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
-import gc
 import logging
 import math
-import os
 import signal
-import sys
 import time
-from pathlib import Path
 
 import pytest
 import structlog
 
+from dentibot.app.selftest_wire import (
+    ATTEMPTS,
+    RPM,
+    START_BUDGET_S,
+    STOPPED_RPM,
+    EndedEarly,
+    end_child,
+    signal_and_measure,
+    start_child,
+    until_turning,
+)
+from dentibot.app.selftest_wire import PROTOCOL as PRODUCT_PROTOCOL
+from dentibot.app.selftest_wire import child_simulators as simulators
 from dentibot.io.canopen_protocol import HEARTBEAT_ERROR_CODE, State
-from dentibot.io.devices import devices_yaml
 from dentibot.io.epos4 import DEFAULT_CONSUMER_MS, DEFAULT_QUICK_STOP_FILE_RPM_S
-from dentibot.sim.serve import ServePorts, VirtualDentiBot
-from dentibot.sim.world import WorldConfig
 
-ROOT = Path(__file__).resolve().parents[2]
-RPM = 60.0                       # thesis 5.3: the drilling speed
-STOPPED_RPM = 1.0                # "the file stops": below 1 rpm
 SCHEDULING_S = 0.015
 #: The requirement: a dead or frozen host's file is still within 100 ms.
 REQUIRED_S = 0.100
-
-PROTOCOL = f"""name: liveness
-seed: 1
-limits: {{stale_periods: {{arm: 50, ft: 50, motor: 50, aux: 200}}}}
-steps:
-  - calibrate_load: {{}}
-  - drill: {{rpm: {RPM:g}, rounds: [{{duration_s: 60}}]}}
-"""
+#: The child drills at RPM (thesis 5.3: 60 rpm) with the wire selftest's protocol.
+PROTOCOL = PRODUCT_PROTOCOL
+assert f"rpm: {RPM:g}" in PROTOCOL and RPM == 60.0 and STOPPED_RPM == 1.0
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -74,122 +73,6 @@ def heartbeat_bound_s(world) -> float:
     """The drive's own supervision: consumer time + quick-stop ramp + speed loop + slack."""
     return (DEFAULT_CONSUMER_MS / 1000.0 + RPM / DEFAULT_QUICK_STOP_FILE_RPM_S
             + settle_s(world) + SCHEDULING_S)
-
-
-class SpeedLog:
-    """(monotonic time, file speed rpm) at every World step, recorded in this process. A
-    step run late by a stalled loop is stamped late: the measured time can only grow."""
-
-    def __init__(self, world) -> None:
-        self.world = world
-        self.samples: list[tuple[float, float]] = []
-        self._step = world.step
-        world.step = self._record            # the stepper calls world.step()
-
-    def _record(self) -> None:
-        self._step()
-        self.samples.append((time.monotonic(), self.world.handpiece.omega_rpm))
-
-    def turning_since(self) -> float | None:
-        """Since when the file has turned steadily at RPM (None if it does not now)."""
-        since = None
-        for t, rpm in reversed(self.samples):
-            if abs(rpm - RPM) > 0.5:
-                break
-            since = t
-        return since
-
-    def stopped_after(self, t0: float) -> float | None:
-        """Seconds from ``t0`` to the first step after it with the file below STOPPED_RPM."""
-        return next((t - t0 for t, rpm in self.samples if t > t0 and abs(rpm) < STOPPED_RPM),
-                    None)
-
-    def restore(self) -> None:
-        self.world.step = self._step
-
-
-@contextlib.asynccontextmanager
-async def simulators(tmp_path: Path):
-    """The wire simulators on free loopback ports, their device file, a speed log; the
-    garbage collector off meanwhile (a full collection of pytest's heap stalls the loop)."""
-    ports = ServePorts(meca_port=0, netft_port=0, netft_http_port=0, modbus_port=0,
-                       can_port=0)
-    gc_was = gc.isenabled()
-    gc.disable()
-    try:
-        async with VirtualDentiBot(WorldConfig(seed=1), ports) as bot:
-            devices = tmp_path / "devices.yaml"
-            devices.write_text(devices_yaml(bot.devices_config()), encoding="utf-8")
-            log = SpeedLog(bot.world)
-            try:
-                yield bot, devices, log
-            finally:
-                log.restore()
-    finally:
-        if gc_was:
-            gc.enable()
-
-
-#: The controller child runs at a lower priority than the simulators: simulated devices stand
-#: for hardware, which never stalls; on a loaded 2-core machine a simulator starved by the
-#: child's start-up lets the F/T stream go stale (the driver's 20 ms limit) and the run ends
-#: before it drills.
-CHILD_NICE = 3
-
-
-async def start_child(args: list[str], tmp_path: Path) -> tuple[asyncio.subprocess.Process,
-                                                               Path]:
-    err = tmp_path / "child-stderr.txt"
-    with err.open("wb") as f:
-        proc = await asyncio.create_subprocess_exec(
-            "nice", "-n", str(CHILD_NICE), sys.executable, *args, cwd=ROOT,
-            stdin=asyncio.subprocess.DEVNULL, stdout=asyncio.subprocess.DEVNULL, stderr=f)
-    return proc, err
-
-
-class EndedEarly(AssertionError):
-    """The controller ended before the file turned."""
-
-
-async def until_turning(proc, log: SpeedLog, err: Path, timeout_s: float = 40.0,
-                        steady_s: float = 0.3) -> None:
-    """Wait until the file has turned at RPM for ``steady_s`` (the child is mid-drilling)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if proc.returncode is not None:
-            raise EndedEarly(f"the controller ended ({proc.returncode}) before the file "
-                             f"turned: {err.read_text()[-3000:]}")
-        since = log.turning_since()
-        if since is not None and time.monotonic() - since >= steady_s:
-            return
-        await asyncio.sleep(0.01)
-    raise AssertionError(f"the file never turned steadily at {RPM} rpm: "
-                         f"{err.read_text()[-3000:]}")
-
-
-async def signal_and_measure(proc, sig: int, log: SpeedLog, watch_s: float = 0.5) -> float:
-    t_sig = time.monotonic()
-    os.kill(proc.pid, sig)
-    await asyncio.sleep(watch_s)
-    stopped = log.stopped_after(t_sig)
-    assert stopped is not None, f"the file still turns {watch_s} s after signal {sig}"
-    return stopped
-
-
-async def end_child(proc) -> None:
-    with contextlib.suppress(ProcessLookupError):
-        os.kill(proc.pid, signal.SIGCONT)
-        os.kill(proc.pid, signal.SIGKILL)
-    await proc.wait()
-
-
-#: Attempts at reaching the drilling state, and no new one after START_BUDGET_S. On a loaded
-#: 2-core machine the controller's F/T driver (20 ms freshness) occasionally finds the
-#: loopback stream late during the load calibration and the run ends with that fault before
-#: it drills (a start-up takes about 8 s); the measurement itself is never repeated: the first
-#: attempt that drilled is the one measured.
-ATTEMPTS = 3
-START_BUDGET_S = 12.0
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP], ids=["kill-9", "sigstop"])
