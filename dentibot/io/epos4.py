@@ -95,19 +95,24 @@ from __future__ import annotations
 
 import asyncio
 import math
-import select
-import socket
-import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from typing import Any, Self
+from typing import Any
 
 import can
 import structlog
 
 from dentibot.errors import ConfigError, DeviceFault, ProtocolError
 from dentibot.io import canopen_protocol as co
+from dentibot.io.canopen_master import (
+    SOCKETCAND_PORT,  # noqa: F401 - importable from here as before
+    CanOpenMaster,
+    ConfigurationMismatch,
+    SdoAbort,
+    SocketcandBus,
+    cancel_task,
+)
 from dentibot.io.canopen_protocol import (
     ABORT_CONNECTION_OPTIONS,
     CONTROLWORD,
@@ -165,273 +170,23 @@ DEFAULT_FEED_TIMEOUT_S = 0.1
 #: torque gives its own rotor (the file's inertia is negligible behind the gear); the drive
 #: limits the current anyway.
 DEFAULT_QUICK_STOP_FILE_RPM_S = 6000.0
-#: Bad frames logged one by one before logging only every ``_LOG_EVERY``-th.
+#: Unanswered SYNCs logged one by one before logging only every ``_LOG_EVERY``-th.
 _LOG_FIRST, _LOG_EVERY = 10, 1000
 #: Longest ``close()`` waits for the drive to confirm the shutdown (s).
 _CLOSE_WAIT_S = 0.2
-#: Notifier receive timeout (s): how long ``close()`` may wait for the reader thread.
-_NOTIFIER_TIMEOUT_S = 0.05
 
 _TX1, _TX2 = TXPDO1.layout, TXPDO2.layout
 _RX1, _RX2 = RXPDO1.layout, RXPDO2.layout
 _I32_MIN, _I32_MAX = co.I32.range
 
 
-#: socketcand's default TCP port.
-SOCKETCAND_PORT = 29536
-#: Longest socketcand message accepted (characters from ``<`` to ``>``); a frame line is
-#: under 60.
-_SOCKETCAND_MAX_CHARS = 512
-
-
-class ConfigurationMismatch(DeviceFault):
-    """The drive does not hold a value the driver wrote at start-up (read back differs):
-    ``obj`` (the object), ``written``, ``read``. A drive that would not watch the host's
-    heartbeat, or would not stop on its loss, must not be run."""
-
-    def __init__(self, device: str, obj: OdObject, written: int, read: int, why: str) -> None:
-        self.obj, self.written, self.read = obj, written, read
-        super().__init__(device, f"{obj} reads back {read} (0x{read:X}) after writing "
-                                 f"{written} (0x{written:X}): {why}")
-
-
-class SocketcandBus(can.BusABC):
-    """A socketcand client (raw mode) whose every wait is bounded.
-
-    The ASCII protocol (socketcand's documentation, as python-can's client uses it): the
-    server greets ``< hi >``; ``< open CHANNEL >`` -> ``< ok >``; ``< rawmode >`` -> ``< ok >``;
-    then ``< send ID LEN B0 .. >`` to the bus (ID 3 hex digits for 11-bit, 8 for 29-bit) and
-    ``< frame ID SECS.USECS DATA >`` from it (DATA one hex string). python-can's own client
-    waits for the greeting with no time limit, retries a refused connection for 10 s and
-    compares each handshake answer to a single ``recv``; this one:
-
-    - connects with ``timeout_s`` and finishes the whole handshake before the same deadline;
-      no greeting in time is :class:`TimeoutError` (the driver turns it into
-      :class:`~dentibot.io.interfaces.ConnectTimeout` naming the address), an ``< error .. >``
-      answer is :class:`can.CanInitializationError`;
-    - buffers the stream, so answers and frames split or glued across TCP reads are fine;
-    - bounds every send by ``send_timeout_s`` (a peer that stops reading makes ``send`` raise
-      :class:`can.CanOperationError` instead of blocking the event loop);
-    - reports a closed connection as :class:`can.CanOperationError` from ``recv`` (the
-      Notifier hands it to the driver as a link error).
-    """
-
-    def __init__(self, channel: str, host: str = "127.0.0.1", port: int = SOCKETCAND_PORT, *,
-                 timeout_s: float = 2.0, send_timeout_s: float = 0.05, tcp_tune: bool = True,
-                 **kwargs: Any) -> None:
-        self.host, self.port = host, port
-        self.channel = channel
-        self.timeout_s = float(timeout_s)
-        self._text = ""
-        self._frames: deque[can.Message] = deque()
-        self.channel_info = f"socketcand {host}:{port} channel {channel}"
-        deadline = time.monotonic() + self.timeout_s
-        try:
-            sock = socket.create_connection((host, port), timeout=self.timeout_s)
-        except TimeoutError:
-            raise TimeoutError("TCP connection") from None
-        try:
-            if tcp_tune:
-                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            self._sock = sock
-            self._expect("< hi >", "greeting", deadline)
-            self._say(f"< open {channel} >", deadline)
-            self._expect("< ok >", f"answer to < open {channel} >", deadline)
-            self._say("< rawmode >", deadline)
-            self._expect("< ok >", "answer to < rawmode >", deadline)
-            sock.settimeout(float(send_timeout_s))
-        except BaseException:
-            sock.close()
-            raise
-        super().__init__(channel=channel, **kwargs)
-
-    # ---------------------------------------------------------------- handshake
-    def _say(self, text: str, deadline: float) -> None:
-        self._sock.settimeout(max(1e-3, deadline - time.monotonic()))
-        self._sock.sendall(text.encode("ascii"))
-
-    def _expect(self, want: str, what: str, deadline: float) -> None:
-        while True:
-            msg = self._next_message()
-            if msg is not None:
-                if msg == want:
-                    return
-                if msg.startswith("< frame "):          # a frame before the answer: keep it
-                    self._keep_frame(msg)
-                    continue
-                if msg.startswith("< error"):
-                    raise can.CanInitializationError(
-                        f"{self.channel_info}: {what}: the server answered {msg!r}")
-                raise can.CanInitializationError(
-                    f"{self.channel_info}: {what}: expected {want!r}, got {msg!r}")
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise TimeoutError(what)
-            self._sock.settimeout(left)
-            try:
-                data = self._sock.recv(4096)
-            except TimeoutError:
-                raise TimeoutError(what) from None
-            if not data:
-                raise can.CanInitializationError(
-                    f"{self.channel_info}: the server closed the connection before its {what}")
-            self._text += data.decode("ascii", "replace")
-
-    def _next_message(self) -> str | None:
-        """Take the next complete ``< ... >`` message off the buffer (bytes outside one, and
-        over-long ones, are skipped)."""
-        text = self._text
-        while True:
-            start = text.find("<")
-            if start < 0:
-                self._text = ""
-                return None
-            end = text.find(">", start)
-            if end < 0:
-                self._text = text[start:] if len(text) - start <= _SOCKETCAND_MAX_CHARS else ""
-                return None
-            msg, text = text[start:end + 1], text[end + 1:]
-            if len(msg) <= _SOCKETCAND_MAX_CHARS:
-                self._text = text
-                return msg
-
-    def _keep_frame(self, msg: str) -> None:
-        frame = self.parse_frame(msg)
-        if frame is not None:
-            frame.channel = self.channel
-            self._frames.append(frame)
-
-    @staticmethod
-    def parse_frame(msg: str) -> can.Message | None:
-        """``< frame ID SECS.USECS DATA >`` -> :class:`can.Message` (None if malformed)."""
-        parts = msg[1:-1].split()
-        if len(parts) not in (3, 4) or parts[0] != "frame":
-            return None
-        sid, stamp = parts[1], parts[2]
-        data_hex = parts[3] if len(parts) == 4 else ""
-        try:
-            can_id = int(sid, 16)
-            ts = float(stamp)
-            data = bytes.fromhex(data_hex)
-        except ValueError:
-            return None
-        if len(sid) not in (3, 8) or len(data) > 8:
-            return None
-        return can.Message(timestamp=ts, arbitration_id=can_id, is_extended_id=len(sid) == 8,
-                           data=data)
-
-    @staticmethod
-    def send_line(msg: can.Message) -> str:
-        sid = f"{msg.arbitration_id:08X}" if msg.is_extended_id else f"{msg.arbitration_id:03X}"
-        data = bytes(msg.data)[:msg.dlc]
-        return " ".join(["<", "send", sid, f"{len(data):X}", *(f"{b:02X}" for b in data), ">"])
-
-    # ---------------------------------------------------------------- BusABC
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        while True:
-            if self._frames:
-                return self._frames.popleft(), False
-            msg = self._next_message()
-            if msg is not None:
-                if msg.startswith("< frame "):
-                    self._keep_frame(msg)
-                continue                                # < ok >, < echo >, < error ..>
-            try:
-                ready, _, _ = select.select([self._sock], [], [], timeout)
-            except (OSError, ValueError) as exc:
-                raise can.CanOperationError(f"{self.channel_info}: receive failed: "
-                                            f"{exc}") from exc
-            if not ready:
-                return None, False
-            try:
-                data = self._sock.recv(4096)
-            except OSError as exc:
-                raise can.CanOperationError(f"{self.channel_info}: receive failed: "
-                                            f"{exc}") from exc
-            if not data:
-                raise can.CanOperationError(f"{self.channel_info}: the server closed the "
-                                            "connection")
-            self._text += data.decode("ascii", "replace")
-            timeout = 0.0
-
-    def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        try:
-            self._sock.sendall(self.send_line(msg).encode("ascii"))
-        except OSError as exc:              # TimeoutError included: the peer stopped reading
-            raise can.CanOperationError(f"{self.channel_info}: send failed: {exc!r}") from exc
-
-    def shutdown(self) -> None:
-        super().shutdown()
-        self._sock.close()
-
-
-class SdoAbort(DeviceFault):
-    """The drive refused an SDO: ``code`` (CiA 301 abort code), ``index``, ``sub``."""
-
-    def __init__(self, device: str, index: int, sub: int, code: int, verb: str) -> None:
-        self.index, self.sub, self.code = index, sub, code
-        super().__init__(device, f"SDO {verb} 0x{index:04X}:{sub:02X} aborted with 0x{code:08X}"
-                                 f" ({co.sdo_abort_meaning(code)})")
-
-
-async def _in_thread(fn: Callable[[], Any], name: str) -> Any:
-    """Run a blocking ``fn`` (opening a bus: socketcand's handshake blocks) in a short-lived
-    thread, joined when done, so the event loop keeps serving (e.g. an in-process server)."""
-    loop = asyncio.get_running_loop()
-    fut: asyncio.Future = loop.create_future()
-
-    def deliver(ok: bool, value: Any) -> None:
-        if fut.cancelled():
-            if ok and hasattr(value, "shutdown"):
-                value.shutdown()          # a bus nobody is waiting for any more
-            return
-        if ok:
-            fut.set_result(value)
-        else:
-            fut.set_exception(value)
-
-    def run() -> None:
-        try:
-            value, ok = fn(), True
-        except BaseException as exc:  # noqa: BLE001 - handed to the awaiting task
-            value, ok = exc, False
-        try:
-            loop.call_soon_threadsafe(deliver, ok, value)
-        except RuntimeError:              # loop closed meanwhile
-            if ok and hasattr(value, "shutdown"):
-                value.shutdown()
-
-    th = threading.Thread(target=run, name=name, daemon=True)
-    th.start()
-    result = await fut
-    th.join(timeout=1.0)
-    return result
-
-
-class _Listener(can.Listener):
-    """python-can listener handing frames (and reader-thread errors) to the driver."""
-
-    def __init__(self, driver: Epos4Driver) -> None:
-        self.driver = driver
-
-    def on_message_received(self, msg: can.Message) -> None:
-        self.driver._on_message(msg)
-
-    def on_error(self, exc: Exception) -> None:
-        self.driver._on_link_error(exc)
-
-
-class Epos4Driver:
+class Epos4Driver(CanOpenMaster):
     """Maxon EPOS4 handpiece drive over CANopen (implements ``dentibot.io.Handpiece``).
 
     Args:
-        bus_factory: zero-argument callable returning an open ``can.BusABC``; the driver
-            owns it (shuts it down on close). None: ``can.Bus(interface, channel, ...)``.
-        interface: python-can interface name ("socketcan", "socketcand", "virtual", ...).
-        channel: CAN channel ("can0"; for socketcand the server's channel, e.g. "vcan0").
-        host, port: socketcand server address (29536 is socketcand's default port).
-        bus_kwargs: extra keyword arguments for ``can.Bus`` (e.g. ``bitrate``). For
-            socketcand ``tcp_tune=True`` (TCP_NODELAY) is the default here.
+        bus_factory, interface, channel, host, port, bus_kwargs: the bus, as for
+            :class:`~dentibot.io.canopen_master.CanOpenMaster` (default: kernel SocketCAN
+            ``can0``).
         node_id: CANopen node id of the drive (1).
         gear_ratio: handpiece gear, motor turns per file turn (67, thesis 5.1). The drive's
             0x3003 is read and a mismatch logged; this value is used.
@@ -466,6 +221,10 @@ class Epos4Driver:
             :data:`DEFAULT_QUICK_STOP_FILE_RPM_S`.
         name: device name in errors and logs.
     """
+
+    log_name = "epos4"
+    factory_description = "from the bus factory"
+    count_error_frames = True
 
     def __init__(self, bus_factory: Callable[[], can.BusABC] | None = None, *,
                  interface: str = "socketcan", channel: str = "can0",
@@ -528,36 +287,31 @@ class Epos4Driver:
         if heartbeat_ms is not None and not (isinstance(heartbeat_ms, int)
                                              and 0 <= heartbeat_ms <= 0xFFFF):
             raise ConfigError("epos4.heartbeat_ms", heartbeat_ms, "None or 0..65535 ms")
-        self._bus_factory = bus_factory
-        self.interface, self.channel = interface, channel
-        self.host, self.port = host, port
-        self.bus_kwargs = dict(bus_kwargs or {})
+        super().__init__(bus_factory, interface=interface, channel=channel, host=host,
+                         port=port, bus_kwargs=bus_kwargs, sdo_timeout_s=sdo_timeout_s,
+                         connect_timeout_s=connect_timeout_s, sync_period_s=sync_period_s,
+                         heartbeat_ms=heartbeat_ms, heartbeat_timeout_s=heartbeat_timeout_s,
+                         name=name)
         self.gear_ratio = float(gear_ratio)
         self.counts_per_turn = encoder_counts_per_turn
-        self.sync_period_s = float(sync_period_s)
         self.max_file_rpm = float(max_file_rpm)
         self.move_rpm = float(move_rpm)
-        self.heartbeat_ms = heartbeat_ms
-        self.heartbeat_timeout_s = float(heartbeat_timeout_s)
         self.stale_after_s = float(stale_after_s)
         self.answer_timeout_s = float(answer_timeout_s)
-        self.sdo_timeout_s = float(sdo_timeout_s)
         self.state_timeout_s = float(state_timeout_s)
         self.configure_pdos = bool(configure_pdos)
-        self.connect_timeout_s = float(connect_timeout_s)
         self.consumer_ms = consumer_ms
         self.host_heartbeat_period_s = float(host_heartbeat_period_s)
         self.feed_timeout_s = None if feed_timeout_s is None else float(feed_timeout_s)
         self.abort_connection_option = abort_connection_option
         self.quick_stop_file_rpm_s = (None if quick_stop_file_rpm_s is None
                                       else float(quick_stop_file_rpm_s))
-        self.name = name
         nid = self.node_id
         self._host_hb_cob = co.cob_id("HEARTBEAT", self.host_node_id)
         self._cob = {fn: co.cob_id(fn, nid) for fn in
                      ("RPDO1", "RPDO2", "TPDO1", "TPDO2", "SDO_RX", "SDO_TX", "EMCY",
                       "HEARTBEAT")}
-        self._handlers: dict[int, Callable[[bytes, float], None]] = {
+        self._handlers = {
             self._cob["TPDO1"]: self._on_tpdo1,
             self._cob["TPDO2"]: self._on_tpdo2,
             self._cob["SDO_TX"]: self._on_sdo,
@@ -570,17 +324,11 @@ class Epos4Driver:
         self.lost = 0               # SYNCs not answered within answer_timeout_s
         self.unsolicited = 0        # samples with no SYNC waiting (answers after "lost")
         self.incomplete = 0         # a TxPDO1 or TxPDO2 without its partner
-        self.errors = 0             # frames that broke the protocol (wrong length ...)
         self.emcy_count = 0
         self.heartbeats = 0
         self.host_heartbeats = 0    # heartbeats this host produced for the drive's consumer
         self.withheld = 0           # host heartbeats withheld: the control path went silent
         self.feeds = 0
-        self.sdo_requests = 0
-        self.sdo_aborts = 0
-        self.sdo_timeouts = 0
-        self.send_errors = 0
-        self.overruns = 0           # own SYNC cycles skipped because the loop was late
         self.latency_last_s = 0.0   # SYNC sent -> TxPDO2 received
         self.latency_max_s = 0.0
         self._latency_sum = 0.0
@@ -600,7 +348,6 @@ class Epos4Driver:
         self.last_emcy: Emcy | None = None
         self._emcy_fault: Emcy | None = None     # the first EMCY since the last reset
         self._emcy_later = 0                       # EMCYs received after it
-        self._link_error: str | None = None
         self._rebooted = False
         self._sample: MotorState | None = None
         self._tx1: tuple[int, State, int, int] | None = None
@@ -622,39 +369,21 @@ class Epos4Driver:
         self._sp_sync = 0           # number of the SYNC that carried the set-point edge
         self._last_bit4 = False     # bit 4 of the last controlword sent
         # plumbing
-        self._bus: can.BusABC | None = None
-        self._notifier: can.Notifier | None = None
         self._sync_task: asyncio.Task | None = None
-        self._sdo_lock: asyncio.Lock | None = None
-        self._sdo_pending: tuple[int, int, asyncio.Future] | None = None
         self._rx_event: asyncio.Event | None = None
         self._consumer_set = False  # 0x1016:01 written (switched off again on close)
         #: what the drive holds after start-up: 0x6085 (motor rpm/s), 0x6007, 0x1016:01
         #: as (host node id, consumer ms)
         self.liveness: dict[str, Any] = {}
-        self._connected = False     # bus open
-        self._started = False       # NMT started, cyclic exchange possible
-        self._closed = False
 
     # ================================================================== lifecycle
-    def _make_bus(self) -> can.BusABC:
-        if self._bus_factory is not None:
-            return self._bus_factory()
-        kw = dict(self.bus_kwargs)
+    def _open_timeout(self, exc: TimeoutError) -> ConnectTimeout:
         if self.interface == "socketcand":
-            self.host = kw.pop("host", self.host)
-            self.port = kw.pop("port", self.port)
-            kw.setdefault("tcp_tune", True)
-            kw.setdefault("timeout_s", self.connect_timeout_s)
-            return SocketcandBus(self.channel, self.host, self.port, **kw)
-        return can.Bus(interface=self.interface, channel=self.channel, **kw)
-
-    def _bus_description(self) -> str:
-        if self._bus_factory is not None:
-            return "from the bus factory"
-        if self.interface == "socketcand":
-            return f"socketcand {self.host}:{self.port} channel {self.channel}"
-        return f"{self.interface} channel {self.channel}"
+            return ConnectTimeout(self.name, f"{self.host}:{self.port}",
+                                  f"socketcand {exc} (channel {self.channel})",
+                                  self.connect_timeout_s)
+        return ConnectTimeout(self.name, self._bus_description(), "answer opening the bus",
+                              self.connect_timeout_s)
 
     async def connect(self, sync: bool = True) -> None:
         """Open the bus, configure the drive over SDO, start it and enable operation.
@@ -666,24 +395,8 @@ class Epos4Driver:
             return
         if self._closed:
             raise DeviceFault(self.name, "driver closed; create a new one to reconnect")
-        loop = asyncio.get_running_loop()
-        self._sdo_lock = asyncio.Lock()
         self._rx_event = asyncio.Event()
-        try:
-            self._bus = await _in_thread(self._make_bus, f"{self.name}-open-bus")
-        except TimeoutError as exc:
-            if self.interface == "socketcand":
-                raise ConnectTimeout(self.name, f"{self.host}:{self.port}",
-                                     f"socketcand {exc} (channel {self.channel})",
-                                     self.connect_timeout_s) from None
-            raise ConnectTimeout(self.name, self._bus_description(), "answer opening the bus",
-                                 self.connect_timeout_s) from None
-        except (can.CanError, OSError, ValueError, TypeError, ImportError) as exc:
-            raise DeviceFault(self.name, f"cannot open CAN bus {self._bus_description()}: "
-                                         f"{exc}") from exc
-        self._notifier = can.Notifier(self._bus, [_Listener(self)],
-                                      timeout=_NOTIFIER_TIMEOUT_S, loop=loop)
-        self._connected = True
+        await self._open_bus()
         try:
             await self._start_up(sync)
         except BaseException:
@@ -723,37 +436,16 @@ class Epos4Driver:
         if healthy:
             try:
                 self._send_cycle()
-                self._send(co.COB_BASE["NMT"],
-                           co.encode_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id))
+                self._send_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id)
             except DeviceFault:
                 pass
-        self._started = False
-        self._connected = False
-        if self._notifier is not None:
-            self._notifier.stop(timeout=1.0)
-            self._notifier = None
-        if self._bus is not None:
-            bus, self._bus = self._bus, None
-            try:
-                bus.shutdown()
-            except (can.CanError, OSError) as exc:
-                log.warning("epos4 bus shutdown failed", device=self.name, error=str(exc))
-        fut = self._sdo_pending[2] if self._sdo_pending else None
-        if fut is not None and not fut.done():
-            fut.cancel()
+        self._teardown()
         log.info("epos4 closed", device=self.name, syncs=self.syncs_sent,
                  received=self.received, lost=self.lost, errors=self.errors)
 
-    async def __aenter__(self) -> Self:
-        await self.connect()
-        return self
-
-    async def __aexit__(self, *exc) -> None:
-        await self.close()
-
     async def _start_up(self, sync: bool) -> None:
         nid = self.node_id
-        self._send(co.COB_BASE["NMT"], co.encode_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, nid))
+        self._send_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, nid)
         self.device_type = await self.sdo_read("device_type")
         if self.device_type & 0xFFFF != 402:
             raise DeviceFault(self.name, f"node {nid}: device type 0x{self.device_type:08X} is "
@@ -789,7 +481,7 @@ class Epos4Driver:
         await self._configure_liveness()
         self._profile_vel = round(self.move_rpm * self.gear_ratio)
         self._cw = CONTROLWORD[Command.DISABLE_VOLTAGE]
-        self._send(co.COB_BASE["NMT"], co.encode_nmt(NmtCommand.START, nid))
+        self._send_nmt(NmtCommand.START, nid)
         self.nmt_state = NmtState.OPERATIONAL
         self._hb_t = time.monotonic()
         self._started = True
@@ -893,43 +585,14 @@ class Epos4Driver:
         await self.sdo_write(co.OBJECTS_BY_ADDRESS[(index, sub)], value)
 
     async def _sdo(self, index: int, sub: int, request: bytes, verb: str) -> SdoFrame:
-        if not self._connected or self._sdo_lock is None:
-            raise DeviceFault(self.name, "not connected")
-        async with self._sdo_lock:
-            fut = asyncio.get_running_loop().create_future()
-            self._sdo_pending = (index, sub, fut)
-            self.sdo_requests += 1
-            try:
-                self._send(self._cob["SDO_RX"], request)
-                frame = await asyncio.wait_for(fut, self.sdo_timeout_s)
-            except TimeoutError:
-                self.sdo_timeouts += 1
-                raise DeviceFault(self.name, (
-                    f"SDO {verb} 0x{index:04X}:{sub:02X} not answered within "
-                    f"{self.sdo_timeout_s} s (node {self.node_id} absent, or not in "
-                    "PRE-OPERATIONAL/OPERATIONAL)")) from None
-            finally:
-                self._sdo_pending = None
-        if frame.kind == "abort":
-            self.sdo_aborts += 1
-            raise SdoAbort(self.name, index, sub, frame.abort_code, verb)
-        return frame
+        timeout = DeviceFault(self.name, (
+            f"SDO {verb} 0x{index:04X}:{sub:02X} not answered within "
+            f"{self.sdo_timeout_s} s (node {self.node_id} absent, or not in "
+            "PRE-OPERATIONAL/OPERATIONAL)"))
+        return await self._sdo_transfer(self.node_id, index, sub, request, verb,
+                                        timeout_error=timeout, abort_device=self.name)
 
     # ================================================================== cyclic exchange
-    def _send(self, can_id: int, data: bytes) -> None:
-        bus = self._bus
-        if bus is None:
-            raise DeviceFault(self.name, "not connected")
-        try:
-            bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
-        except (can.CanError, OSError) as exc:
-            self.send_errors += 1
-            if self.send_errors <= _LOG_FIRST or self.send_errors % _LOG_EVERY == 0:
-                log.warning("epos4 send failed", device=self.name, cob_id=hex(can_id),
-                            error=str(exc), count=self.send_errors)
-            raise DeviceFault(self.name, f"CAN send of COB-ID 0x{can_id:03X} failed: "
-                                         f"{exc}") from exc
-
     def _controlword(self) -> int:
         """The controlword of the cycle about to be sent. Profile position set-point
         handshake: bit 4 rises only after a cycle with bit 4 low and with the drive's
@@ -1033,20 +696,7 @@ class Epos4Driver:
         return True
 
     async def _sync_loop(self) -> None:
-        loop = asyncio.get_running_loop()
-        period = self.sync_period_s
-        next_t = loop.time()
-        while True:
-            try:
-                await self.exchange()
-            except DeviceFault:
-                pass                    # counted and logged in _send; read() reports it
-            next_t += period
-            now = loop.time()
-            if now - next_t > period:   # more than a period late: skip, do not burst
-                self.overruns += int((now - next_t) / period)
-                next_t = now
-            await asyncio.sleep(max(0.0, next_t - now))
+        await self._cyclic(self.exchange)   # a failed send: counted, logged, read() reports it
 
     def start_sync(self) -> None:
         """Start the own cyclic task (RxPDOs + SYNC every ``sync_period_s``); no-op if it
@@ -1061,12 +711,7 @@ class Epos4Driver:
         """Stop the own cyclic task (hand the cycle over to :meth:`exchange`). The drive keeps
         its last commands; ``read()`` turns stale unless someone exchanges."""
         task, self._sync_task = self._sync_task, None
-        if task is not None:
-            task.cancel()
-            try:
-                await task
-            except asyncio.CancelledError:
-                pass
+        await cancel_task(task)
 
     async def _drive_cycles_until(self, pred: Callable[[], bool], deadline: float) -> bool:
         """Wait for ``pred`` while cycles run (the own task's, or exchanges made here)."""
@@ -1087,29 +732,6 @@ class Epos4Driver:
                                               deadline)
 
     # ================================================================== reception
-    def _on_message(self, msg: can.Message) -> None:
-        if msg.is_error_frame:
-            self.errors += 1
-            return
-        if msg.is_remote_frame or msg.is_extended_id:
-            return
-        handler = self._handlers.get(msg.arbitration_id)
-        if handler is None:
-            return
-        data = bytes(msg.data)
-        try:
-            handler(data, time.monotonic())
-        except ProtocolError as exc:
-            self.errors += 1
-            if self.errors <= _LOG_FIRST or self.errors % _LOG_EVERY == 0:
-                log.warning("epos4 bad frame", device=self.name,
-                            cob_id=hex(msg.arbitration_id), data=data.hex(), error=str(exc),
-                            count=self.errors)
-
-    def _on_link_error(self, exc: Exception) -> None:
-        self._link_error = f"{type(exc).__name__}: {exc}"
-        log.error("epos4 CAN reader failed", device=self.name, error=self._link_error)
-
     def _on_tpdo1(self, data: bytes, now: float) -> None:
         sw, vel, mode = _TX1.unpack(data, "TxPDO1")
         state = co.state_from_statusword(sw)
@@ -1158,13 +780,8 @@ class Epos4Driver:
             self._rx_event.set()
 
     def _on_sdo(self, data: bytes, now: float) -> None:
-        frame = co.decode_sdo_response(data)
-        pending = self._sdo_pending
-        if pending is None or (frame.index, frame.sub) != pending[:2]:
-            raise ProtocolError(self.name, f"SDO response for 0x{frame.index:04X}:"
-                                           f"{frame.sub:02X} that nobody asked for")
-        if not pending[2].done():
-            pending[2].set_result(frame)
+        self._on_sdo_response(self.node_id, data,
+                              "SDO response for {index}:{sub} that nobody asked for")
 
     def _on_emcy(self, data: bytes, now: float) -> None:
         emcy = co.decode_emcy(data)
@@ -1426,7 +1043,7 @@ class Epos4Driver:
 
     async def nmt(self, command: NmtCommand) -> None:
         """Send an NMT command to the drive (diagnostics; the start-up does what is needed)."""
-        self._send(co.COB_BASE["NMT"], co.encode_nmt(command, self.node_id))
+        self._send_nmt(command, self.node_id)
 
 
 __all__ = ["DEFAULT_CONSUMER_MS", "DEFAULT_COUNTS_PER_TURN", "DEFAULT_FEED_TIMEOUT_S",

@@ -1,10 +1,11 @@
 """Patient tracker driver: six CiA 406 draw-wire encoders over CANopen, asyncio.
 
 :class:`TrackerDriver` implements :class:`dentibot.io.interfaces.PatientTracker` on any
-python-can bus, opened as :class:`~dentibot.io.epos4.Epos4Driver` opens its own: kernel
+python-can bus, opened by :class:`~dentibot.io.canopen_master.CanOpenMaster`: kernel
 SocketCAN, a socketcand server (the bounded client
-:class:`~dentibot.io.epos4.SocketcandBus`), python-can's ``virtual`` bus, or a factory. It
-gives string lengths; the pose is :func:`dentibot.control.strings.forward`'s business.
+:class:`~dentibot.io.canopen_master.SocketcandBus`), python-can's ``virtual`` bus, or a
+factory. It gives string lengths; the pose is :func:`dentibot.control.strings.forward`'s
+business.
 
 Start-up (``connect()``), per encoder node, SDOs with ``sdo_timeout_s`` each:
 
@@ -17,7 +18,7 @@ Start-up (``connect()``), per encoder node, SDOs with ``sdo_timeout_s`` each:
    units per revolution 0x6001, total measuring range 0x6002, producer heartbeat 0x1017,
    TPDO1 = position value 0x6004 with transmission type ``transmission_type`` (COB-ID
    invalid -> type -> count 0 -> entry -> count 1 -> COB-ID valid). Everything is read
-   back; a difference is a :class:`~dentibot.io.epos4.ConfigurationMismatch`
+   back; a difference is a :class:`~dentibot.io.canopen_master.ConfigurationMismatch`
    (``configure=False``: only the comparison).
 4. NMT *start*.
 
@@ -42,10 +43,10 @@ from __future__ import annotations
 
 import asyncio
 import math
-import threading
 import time
 from collections.abc import Callable, Sequence
-from typing import Any, Self
+from functools import partial
+from typing import Any
 
 import can
 import structlog
@@ -53,8 +54,8 @@ import structlog
 from dentibot.errors import ConfigError, DeviceFault, ProtocolError
 from dentibot.io import canopen_protocol as co
 from dentibot.io import cia406
+from dentibot.io.canopen_master import CanOpenMaster, ConfigurationMismatch, cancel_task
 from dentibot.io.canopen_protocol import NmtCommand, NmtState, OdObject
-from dentibot.io.epos4 import ConfigurationMismatch, SdoAbort, SocketcandBus
 from dentibot.io.interfaces import (
     STRING_FAULT,
     STRING_NO_DATA,
@@ -83,43 +84,10 @@ DEFAULT_ZERO_LENGTH_MM = 20.0
 #: that a jerk of the patient is seen within a tick; six encoders then take about 24 % of a
 #: 1 Mbit/s bus (every 5th SYNC: 100 Hz, about 5 %).
 DEFAULT_TRANSMISSION_TYPE = 1
-_NOTIFIER_TIMEOUT_S = 0.05
-_LOG_FIRST, _LOG_EVERY = 10, 1000
 
 
 class IdentityMismatch(DeviceFault):
     """An encoder's identity 0x1018 is not the one configured."""
-
-
-async def _in_thread(fn: Callable[[], Any], name: str) -> Any:
-    """Run a blocking ``fn`` (opening a bus) in a short-lived thread, joined when done."""
-    loop = asyncio.get_running_loop()
-    fut: asyncio.Future = loop.create_future()
-
-    def deliver(ok: bool, value: Any) -> None:
-        if fut.cancelled():
-            if ok and hasattr(value, "shutdown"):
-                value.shutdown()
-            return
-        (fut.set_result if ok else fut.set_exception)(value)
-
-    def run() -> None:
-        try:
-            value, ok = fn(), True
-        except BaseException as exc:  # noqa: BLE001 - handed to the awaiting task
-            value, ok = exc, False
-        try:
-            loop.call_soon_threadsafe(deliver, ok, value)
-        except RuntimeError:
-            if ok and hasattr(value, "shutdown"):
-                value.shutdown()
-
-    th = threading.Thread(target=run, name=name, daemon=True)
-    th.start()
-    try:
-        return await fut
-    finally:
-        th.join(timeout=1.0)
 
 
 class _Node:
@@ -137,23 +105,12 @@ class _Node:
         self.tpdos = 0
 
 
-class _Listener(can.Listener):
-    def __init__(self, driver: TrackerDriver) -> None:
-        self.driver = driver
-
-    def on_message_received(self, msg: can.Message) -> None:
-        self.driver._on_message(msg)
-
-    def on_error(self, exc: Exception) -> None:
-        self.driver._on_link_error(exc)
-
-
-class TrackerDriver:
+class TrackerDriver(CanOpenMaster):
     """Six (or three or more) CiA 406 draw-wire encoders (``dentibot.io.PatientTracker``).
 
     Args:
         bus_factory, interface, channel, host, port, bus_kwargs, connect_timeout_s: the bus,
-            as for :class:`~dentibot.io.epos4.Epos4Driver`.
+            as for :class:`~dentibot.io.canopen_master.CanOpenMaster`.
         node_ids: node ids of strings 1..n (default 0x21..0x26).
         resolution_mm, drum_mm_per_rev, range_mm: measuring step, wire per drum turn and
             range (0x6001 = drum / step, 0x6002 = range / step).
@@ -169,6 +126,8 @@ class TrackerDriver:
             verify it.
         vendor_id, product_code: expected identity (None: any, logged).
     """
+
+    log_name = "tracker"
 
     def __init__(self, bus_factory: Callable[[], can.BusABC] | None = None, *,
                  interface: str = "socketcan", channel: str = "can0",
@@ -221,69 +180,37 @@ class TrackerDriver:
                 and 1 <= self.total_range_units <= 0xFFFF_FFFF):
             raise ConfigError("tracker.resolution_mm", resolution_mm,
                               "a step giving 1..2^32-1 units per turn and per range")
-        self._bus_factory = bus_factory
-        self.interface, self.channel, self.host, self.port = interface, channel, host, port
-        self.bus_kwargs = dict(bus_kwargs or {})
+        super().__init__(bus_factory, interface=interface, channel=channel, host=host,
+                         port=port, bus_kwargs=bus_kwargs, sdo_timeout_s=sdo_timeout_s,
+                         connect_timeout_s=connect_timeout_s, sync_period_s=sync_period_s,
+                         heartbeat_ms=heartbeat_ms, heartbeat_timeout_s=heartbeat_timeout_s,
+                         name=name)
         self.node_ids = tuple(ids)
         self.resolution_mm = float(resolution_mm)
         self.zero_length_mm = tuple(zl)
         self.min_length_mm, self.max_length_mm = float(min_length_mm), float(max_length_mm)
         self.transmission_type = transmission_type
         self.sync_producer = bool(sync_producer)
-        self.sync_period_s = float(sync_period_s)
-        self.heartbeat_ms = heartbeat_ms
-        self.heartbeat_timeout_s = float(heartbeat_timeout_s)
         self.stale_after_s = float(stale_after_s)
-        self.sdo_timeout_s = float(sdo_timeout_s)
-        self.connect_timeout_s = float(connect_timeout_s)
         self.configure = bool(configure)
         self.expected_vendor_id, self.expected_product_code = vendor_id, product_code
-        self.name = name
         self.nodes = {n: _Node(n) for n in ids}
-        self._handlers: dict[int, Callable[[int, bytes, float], None]] = {}
+        self._handlers[co.COB_BASE["SYNC"]] = lambda data, now: self._on_sync(now)
         for n in ids:
-            self._handlers[co.cob_id("TPDO1", n)] = self._on_tpdo
-            self._handlers[co.cob_id("SDO_TX", n)] = self._on_sdo
-            self._handlers[co.cob_id("EMCY", n)] = self._on_emcy
-            self._handlers[co.cob_id("HEARTBEAT", n)] = self._on_heartbeat
+            self._handlers[co.cob_id("TPDO1", n)] = partial(self._on_tpdo, n)
+            self._handlers[co.cob_id("SDO_TX", n)] = partial(self._on_sdo, n)
+            self._handlers[co.cob_id("EMCY", n)] = partial(self._on_emcy, n)
+            self._handlers[co.cob_id("HEARTBEAT", n)] = partial(self._on_heartbeat, n)
         # counters
         self.syncs_sent = 0
         self.syncs_heard = 0
         self.samples = 0
-        self.errors = 0
-        self.send_errors = 0
-        self.sdo_requests = 0
-        self.sdo_timeouts = 0
         # state
         self._fresh = False          # a TPDO since the last sample was closed
         self._sample: StringSample | None = None
-        self._link_error: str | None = None
-        self._bus: can.BusABC | None = None
-        self._notifier: can.Notifier | None = None
         self._sync_task: asyncio.Task | None = None
-        self._sdo_lock: asyncio.Lock | None = None
-        self._sdo_pending: tuple[int, int, int, asyncio.Future] | None = None
-        self._connected = self._started = self._closed = False
 
     # ================================================================== lifecycle
-    def _make_bus(self) -> can.BusABC:
-        if self._bus_factory is not None:
-            return self._bus_factory()
-        kw = dict(self.bus_kwargs)
-        if self.interface == "socketcand":
-            self.host = kw.pop("host", self.host)
-            self.port = kw.pop("port", self.port)
-            kw.setdefault("tcp_tune", True)
-            kw.setdefault("timeout_s", self.connect_timeout_s)
-            return SocketcandBus(self.channel, self.host, self.port, **kw)
-        return can.Bus(interface=self.interface, channel=self.channel, **kw)
-
-    def _bus_description(self) -> str:
-        if self._bus_factory is not None:
-            return "the bus from the factory"
-        if self.interface == "socketcand":
-            return f"socketcand {self.host}:{self.port} channel {self.channel}"
-        return f"{self.interface} channel {self.channel}"
 
     async def connect(self) -> None:
         """Open the bus, identify and configure every encoder, start them (and the own SYNC
@@ -293,18 +220,7 @@ class TrackerDriver:
         if self._closed:
             raise DeviceFault(self.name, "driver closed; create a new one to reconnect")
         loop = asyncio.get_running_loop()
-        self._sdo_lock = asyncio.Lock()
-        try:
-            self._bus = await _in_thread(self._make_bus, f"{self.name}-open-bus")
-        except TimeoutError as exc:
-            raise ConnectTimeout(self.name, self._bus_description(), f"bus opening ({exc})",
-                                 self.connect_timeout_s) from None
-        except (can.CanError, OSError, ValueError, TypeError, ImportError) as exc:
-            raise DeviceFault(self.name, f"cannot open CAN bus {self._bus_description()}: "
-                                         f"{exc}") from exc
-        self._notifier = can.Notifier(self._bus, [_Listener(self)],
-                                      timeout=_NOTIFIER_TIMEOUT_S, loop=loop)
-        self._connected = True
+        await self._open_bus()
         try:
             for nid in self.node_ids:
                 await self._start_node(nid)
@@ -319,7 +235,7 @@ class TrackerDriver:
 
     async def _start_node(self, nid: int) -> None:
         node = self.nodes[nid]
-        self._send(co.COB_BASE["NMT"], co.encode_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, nid))
+        self._send_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, nid)
         try:
             dtype = await self.sdo_read(nid, "device_type")
         except _SdoTimeout:
@@ -341,7 +257,7 @@ class TrackerDriver:
         await self._configure_node(nid)
         node.rebooted, node.emcy = False, None
         node.hb_t = time.monotonic()        # the heartbeat is watched from the start on
-        self._send(co.COB_BASE["NMT"], co.encode_nmt(NmtCommand.START, nid))
+        self._send_nmt(NmtCommand.START, nid)
         node.nmt = NmtState.OPERATIONAL
         log.info("tracker encoder", device=self.name, node=hex(nid),
                  **{k: hex(v) for k, v in ident.items()})
@@ -389,40 +305,15 @@ class TrackerDriver:
             return
         self._closed = True
         task, self._sync_task = self._sync_task, None
-        if task is not None:
-            task.cancel()
-            try:
-                await task
-            except asyncio.CancelledError:
-                pass
+        await cancel_task(task)
         if self._started and self._link_error is None:
             for nid in self.node_ids:
                 try:
-                    self._send(co.COB_BASE["NMT"],
-                               co.encode_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, nid))
+                    self._send_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, nid)
                 except DeviceFault:
                     break
-        self._started = self._connected = False
-        if self._notifier is not None:
-            self._notifier.stop(timeout=1.0)
-            self._notifier = None
-        if self._bus is not None:
-            bus, self._bus = self._bus, None
-            try:
-                bus.shutdown()
-            except (can.CanError, OSError) as exc:
-                log.warning("tracker bus shutdown failed", device=self.name, error=str(exc))
-        pending = self._sdo_pending
-        if pending is not None and not pending[3].done():
-            pending[3].cancel()
+        self._teardown()
         log.info("tracker closed", device=self.name, samples=self.samples, errors=self.errors)
-
-    async def __aenter__(self) -> Self:
-        await self.connect()
-        return self
-
-    async def __aexit__(self, *exc) -> None:
-        await self.close()
 
     async def recover(self) -> None:
         """Restart every encoder that is not healthy (rebooted, not OPERATIONAL, EMCY,
@@ -455,81 +346,20 @@ class TrackerDriver:
                                            f"unexpected answer '{frame.kind}'")
 
     async def _sdo(self, nid: int, o: OdObject, request: bytes, verb: str) -> co.SdoFrame:
-        if not self._connected or self._sdo_lock is None:
-            raise DeviceFault(self.name, "not connected")
-        async with self._sdo_lock:
-            fut = asyncio.get_running_loop().create_future()
-            self._sdo_pending = (nid, o.index, o.sub, fut)
-            self.sdo_requests += 1
-            try:
-                self._send(co.cob_id("SDO_RX", nid), request)
-                frame = await asyncio.wait_for(fut, self.sdo_timeout_s)
-            except TimeoutError:
-                self.sdo_timeouts += 1
-                raise _SdoTimeout(self.name, f"SDO {verb} {o} to node 0x{nid:02X} not answered "
-                                             f"within {self.sdo_timeout_s} s") from None
-            finally:
-                self._sdo_pending = None
-        if frame.kind == "abort":
-            raise SdoAbort(f"{self.name} node 0x{nid:02X}", o.index, o.sub, frame.abort_code,
-                           verb)
-        return frame
+        timeout = _SdoTimeout(self.name, f"SDO {verb} {o} to node 0x{nid:02X} not answered "
+                                         f"within {self.sdo_timeout_s} s")
+        return await self._sdo_transfer(nid, o.index, o.sub, request, verb,
+                                        timeout_error=timeout,
+                                        abort_device=f"{self.name} node 0x{nid:02X}")
 
-    # ================================================================== bus
-    def _send(self, can_id: int, data: bytes) -> None:
-        bus = self._bus
-        if bus is None:
-            raise DeviceFault(self.name, "not connected")
-        try:
-            bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
-        except (can.CanError, OSError) as exc:
-            self.send_errors += 1
-            if self.send_errors <= _LOG_FIRST or self.send_errors % _LOG_EVERY == 0:
-                log.warning("tracker send failed", device=self.name, cob_id=hex(can_id),
-                            error=str(exc), count=self.send_errors)
-            raise DeviceFault(self.name, f"CAN send of COB-ID 0x{can_id:03X} failed: "
-                                         f"{exc}") from exc
-
+    # ================================================================== SYNC, reception
     async def _sync_loop(self) -> None:
-        loop = asyncio.get_running_loop()
-        period = self.sync_period_s
-        next_t = loop.time()
-        while True:
-            try:
-                self._send(co.COB_BASE["SYNC"], co.encode_sync())
-                self.syncs_sent += 1
-                self._on_sync(time.monotonic())     # our own SYNC is not received back
-            except DeviceFault:
-                pass
-            next_t += period
-            now = loop.time()
-            if now - next_t > period:
-                next_t = now
-            await asyncio.sleep(max(0.0, next_t - now))
+        await self._cyclic(self._send_sync)
 
-    def _on_message(self, msg: can.Message) -> None:
-        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
-            return
-        cid = msg.arbitration_id
-        now = time.monotonic()
-        if cid == co.COB_BASE["SYNC"]:
-            self._on_sync(now)
-            return
-        handler = self._handlers.get(cid)
-        if handler is None:
-            return
-        data = bytes(msg.data)
-        try:
-            handler(cid & 0x7F, data, now)
-        except ProtocolError as exc:
-            self.errors += 1
-            if self.errors <= _LOG_FIRST or self.errors % _LOG_EVERY == 0:
-                log.warning("tracker bad frame", device=self.name, cob_id=hex(cid),
-                            data=data.hex(), error=str(exc))
-
-    def _on_link_error(self, exc: Exception) -> None:
-        self._link_error = f"{type(exc).__name__}: {exc}"
-        log.error("tracker CAN reader failed", device=self.name, error=self._link_error)
+    async def _send_sync(self) -> None:
+        self._send(co.COB_BASE["SYNC"], co.encode_sync())
+        self.syncs_sent += 1
+        self._on_sync(time.monotonic())     # our own SYNC is not received back
 
     def _on_sync(self, now: float) -> None:
         self.syncs_heard += 1
@@ -546,14 +376,8 @@ class TrackerDriver:
         self._fresh = True
 
     def _on_sdo(self, nid: int, data: bytes, now: float) -> None:
-        frame = co.decode_sdo_response(data)
-        pending = self._sdo_pending
-        if pending is None or (nid, frame.index, frame.sub) != pending[:3]:
-            raise ProtocolError(self.name, f"SDO response of node 0x{nid:02X} for "
-                                           f"0x{frame.index:04X}:{frame.sub:02X} that nobody "
-                                           "asked for")
-        if not pending[3].done():
-            pending[3].set_result(frame)
+        self._on_sdo_response(nid, data, "SDO response of node {node} for {index}:{sub} that "
+                                         "nobody asked for")
 
     def _on_emcy(self, nid: int, data: bytes, now: float) -> None:
         emcy = co.decode_emcy(data)

@@ -74,7 +74,6 @@ import asyncio
 import math
 from fractions import Fraction
 from pathlib import Path
-from typing import Self
 
 import can
 import structlog
@@ -97,11 +96,12 @@ from dentibot.io.canopen_protocol import (
     SW_VOLTAGE_ENABLED,
     AbortConnectionOption,
     Mode,
-    NmtCommand,
     NmtState,
     PdoLayout,
     State,
 )
+from dentibot.io.canopen_master import cancel_task
+from dentibot.sim.canopen_node import BusAttached, SdoServerAbort, SimNode
 from dentibot.sim.world import World
 
 log = structlog.get_logger(__name__)
@@ -209,13 +209,7 @@ def default_pdo_parameters(node_id: int) -> dict[tuple[int, int], int]:
     return out
 
 
-class _Abort(Exception):
-    def __init__(self, code: int) -> None:
-        self.code = code
-        super().__init__(f"SDO abort 0x{code:08X} ({co.sdo_abort_meaning(code)})")
-
-
-class Epos4Node:
+class Epos4Node(SimNode, BusAttached):
     """A simulated EPOS4 (CANopen node ``node_id``) on ``bus`` over ``world.handpiece``.
 
     Args:
@@ -233,7 +227,7 @@ class Epos4Node:
                  heartbeat_period_s: float = DEFAULT_HEARTBEAT_MS / 1000,
                  encoder_counts_per_turn: int = DEFAULT_COUNTS_PER_TURN,
                  name: str = "epos4-sim") -> None:
-        self.node_id = co.check_node_id(node_id)
+        super().__init__(node_id)
         if not (math.isfinite(heartbeat_period_s) and 0 <= heartbeat_period_s <= 65.535):
             raise ConfigError("epos4_node.heartbeat_period_s", heartbeat_period_s,
                               "0 (off) .. 65.535 s")
@@ -258,8 +252,6 @@ class Epos4Node:
         self.syncs_answered = 0      # SYNCs at which at least one TxPDO was sent
         self.tpdos_sent = 0
         self.rpdos_received = 0
-        self.sdo_requests = 0
-        self.sdo_aborts = 0
         self.nmt_commands = 0
         self.emcy_sent = 0
         self.heartbeats_sent = 0
@@ -270,7 +262,6 @@ class Epos4Node:
         self.setpoints_accepted = 0  # profile position set-points taken (bit 4 edges)
         self.transitions: list[str] = []    # CiA 402 transition numbers taken, in order
         # state
-        self.nmt_state = NmtState.BOOT_UP
         self.state = State.SWITCH_ON_DISABLED
         self._od: dict[tuple[int, int], int] = {}
         self._rx_layouts: dict[int, PdoLayout | None] = {}
@@ -290,7 +281,6 @@ class Epos4Node:
         self._sto_open: set[str] = set()
         self._ramp_task: asyncio.Task | None = None
         self._ramp_then: State | None = None
-        self._notifier: can.Notifier | None = None
         self._hb_task: asyncio.Task | None = None
         self._started = False
         self._closed = False
@@ -318,9 +308,9 @@ class Epos4Node:
         if self._closed:
             raise ConfigError("epos4_node", "closed", "a node that has not been closed")
         loop = asyncio.get_running_loop()
-        self._notifier = can.Notifier(self.bus, [self._on_message], timeout=0.05, loop=loop)
+        self._attach(self.bus, self._on_message)
         self._started = True
-        self._boot()
+        self.boot()
         self._hb_task = loop.create_task(self._heartbeat_loop(), name=f"{self.name}-heartbeat")
 
     async def close(self) -> None:
@@ -330,23 +320,9 @@ class Epos4Node:
         self._closed = True
         self._disarm_consumer()
         await self._cancel_ramp()
-        if self._hb_task is not None:
-            self._hb_task.cancel()
-            try:
-                await self._hb_task
-            except asyncio.CancelledError:
-                pass
-            self._hb_task = None
-        if self._notifier is not None:
-            self._notifier.stop(timeout=1.0)
-            self._notifier = None
-
-    async def __aenter__(self) -> Self:
-        await self.start()
-        return self
-
-    async def __aexit__(self, *exc) -> None:
-        await self.close()
+        task, self._hb_task = self._hb_task, None
+        await cancel_task(task)
+        self._detach()
 
     # ------------------------------------------------------------------ public helpers
     def inject_emcy(self, code: int, register: int | None = None,
@@ -522,12 +498,7 @@ class Epos4Node:
 
     # ------------------------------------------------------------------ bus I/O
     def _send(self, can_id: int, data: bytes) -> None:
-        try:
-            self.bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
-        except (can.CanError, OSError) as exc:
-            self.send_errors += 1
-            log.warning("epos4 sim send failed", node=self.node_id, cob_id=hex(can_id),
-                        error=str(exc))
+        self._send_frame(can_id, data, "epos4 sim send failed", node=self.node_id)
 
     def _on_message(self, msg: can.Message) -> None:
         if self._closed or msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
@@ -545,7 +516,7 @@ class Epos4Node:
             elif cid == co.COB_BASE["SYNC"]:
                 self._on_sync(data)
             elif cid == co.COB_BASE["SDO_RX"] + self.node_id:
-                self._on_sdo(data)
+                self.on_sdo(data)
             elif cid in self._rx_cobs:
                 self._on_rpdo(self._rx_cobs[cid], data)
         except ProtocolError as exc:
@@ -554,10 +525,8 @@ class Epos4Node:
                         data=data.hex(), error=str(exc))
 
     # ------------------------------------------------------------------ NMT, heartbeat
-    def _boot(self) -> None:
-        self.nmt_state = NmtState.BOOT_UP
-        self._send(co.cob_id("HEARTBEAT", self.node_id), co.encode_heartbeat(NmtState.BOOT_UP))
-        self.nmt_state = NmtState.PRE_OPERATIONAL
+    def boot(self) -> None:
+        super().boot()
         log.info("epos4 sim boot-up", node=self.node_id)
 
     def _on_nmt(self, data: bytes) -> None:
@@ -565,22 +534,15 @@ class Epos4Node:
         if node not in (0, self.node_id):
             return
         self.nmt_commands += 1
-        if cmd is NmtCommand.START:
-            self.nmt_state = NmtState.OPERATIONAL
-        elif cmd is NmtCommand.STOP:
-            self._leave_operational()
-            self.nmt_state = NmtState.STOPPED
-        elif cmd is NmtCommand.ENTER_PRE_OPERATIONAL:
-            self._leave_operational()
-            self.nmt_state = NmtState.PRE_OPERATIONAL
-        elif cmd is NmtCommand.RESET_NODE:
-            self._reset_application()
-            self._reset_communication()
-            self._boot()
-        elif cmd is NmtCommand.RESET_COMMUNICATION:
-            self._leave_operational()
-            self._reset_communication()
-            self._boot()
+        self.on_nmt(cmd)
+
+    def _on_reset_node(self) -> None:
+        self._reset_application()
+        self._reset_communication()
+
+    def _on_reset_communication(self) -> None:
+        self._leave_operational()
+        self._reset_communication()
 
     def _leave_operational(self) -> None:
         """NMT takes an enabled node out of OPERATIONAL: an abort connection event (CiA 402,
@@ -666,46 +628,13 @@ class Epos4Node:
             await asyncio.sleep(period)
             self._poll_world()
             if not self.muted and self.nmt_state is not NmtState.BOOT_UP:
-                self._send(co.cob_id("HEARTBEAT", self.node_id),
-                           co.encode_heartbeat(self.nmt_state))
+                self.send_heartbeat()
                 self.heartbeats_sent += 1
 
     # ------------------------------------------------------------------ SDO server
-    def _on_sdo(self, data: bytes) -> None:
-        if self.nmt_state not in (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL):
-            return
-        req = co.decode_sdo_request(data)
-        self.sdo_requests += 1
-        if req.kind == "abort":
-            return
-        try:
-            if req.kind == "upload":
-                o = self._lookup(req.index, req.sub)
-                if o.access == "wo":
-                    raise _Abort(0x0601_0001)
-                reply = co.encode_sdo_upload_ack(req.index, req.sub,
-                                                 o.dtype.encode(self._read(o), o.name))
-            elif req.kind == "download":
-                if not req.expedited:
-                    raise _Abort(0x0504_0001)
-                o = self._lookup(req.index, req.sub)
-                if o.access in ("ro", "const"):
-                    raise _Abort(0x0601_0002)
-                payload = req.payload
-                if req.size is None:              # size not indicated: 4 bytes sent
-                    payload = payload[:o.dtype.size]
-                if len(payload) != o.dtype.size:
-                    raise _Abort(0x0607_0010)
-                self._write_sdo(o, o.dtype.decode(payload, o.name))
-                reply = co.encode_sdo_download_ack(req.index, req.sub)
-            else:
-                raise _Abort(0x0504_0001)
-        except _Abort as ab:
-            self.sdo_aborts += 1
-            log.info("epos4 sim SDO abort", node=self.node_id, index=hex(req.index),
-                     sub=req.sub, code=hex(ab.code), meaning=co.sdo_abort_meaning(ab.code))
-            reply = co.encode_sdo_abort(req.index, req.sub, ab.code)
-        self._send(co.cob_id("SDO_TX", self.node_id), reply)
+    def _sdo_aborted(self, req: co.SdoFrame, code: int) -> None:
+        log.info("epos4 sim SDO abort", node=self.node_id, index=hex(req.index),
+                 sub=req.sub, code=hex(code), meaning=co.sdo_abort_meaning(code))
 
     def _lookup(self, index: int, sub: int) -> co.OdObject:
         o = co.OBJECTS_BY_ADDRESS.get((index, sub))
@@ -713,8 +642,8 @@ class Epos4Node:
             return o
         if any(i == index for i, _ in self._od) or any(
                 co.obj(n).index == index for n in self._getters):
-            raise _Abort(0x0609_0011)
-        raise _Abort(0x0602_0000)
+            raise SdoServerAbort(0x0609_0011)
+        raise SdoServerAbort(0x0602_0000)
 
     def _write_sdo(self, o: co.OdObject, value: int) -> None:
         if 0x1400 <= o.index <= 0x1BFF:
@@ -723,21 +652,21 @@ class Epos4Node:
         if o.name == "consumer_heartbeat_time":
             node, ms = co.decode_consumer_heartbeat(value)
             if ms and node == self.node_id:
-                raise _Abort(0x0604_0043)       # watching itself: parameter incompatibility
+                raise SdoServerAbort(0x0604_0043)  # watching itself: parameter incompatibility
             self._od[o.address] = value
             self._configure_consumer()
             return
         if o.name == "motor_output_current_limit":
             nominal = self._od[co.obj("motor_nominal_current").address]
             if not 0 < value <= nominal:
-                raise _Abort(0x0609_0031 if value > nominal else 0x0609_0032)
+                raise SdoServerAbort(0x0609_0031 if value > nominal else 0x0609_0032)
             self._od[o.address] = value
             self.world.handpiece.set_current_limit(value / 1000.0)   # the current controller
             return
         if o.name == "abort_connection_option_code" and value not in (0, 1, 2, 3):
-            raise _Abort(0x0609_0030)
+            raise SdoServerAbort(0x0609_0030)
         if o.name == "quick_stop_option_code" and value not in QUICK_STOP_OPTIONS:
-            raise _Abort(0x0609_0030)
+            raise SdoServerAbort(0x0609_0030)
         prev_cw = self._od[co.obj("controlword").address]
         self._od[o.address] = value
         if o.name in _DRIVE_OBJECTS:
@@ -745,7 +674,7 @@ class Epos4Node:
 
     def _write_pdo_parameter(self, o: co.OdObject, value: int) -> None:
         if self.nmt_state is NmtState.OPERATIONAL:
-            raise _Abort(0x0800_0022)   # configure PDOs in PRE-OPERATIONAL (EPOS4)
+            raise SdoServerAbort(0x0800_0022)  # configure PDOs in PRE-OPERATIONAL (EPOS4)
         index, sub = o.address
         is_map = index in range(0x1600, 0x1604) or index in range(0x1A00, 0x1A04)
         direction = "rx" if index < 0x1800 else "tx"
@@ -756,33 +685,34 @@ class Epos4Node:
             if sub == 1:
                 old = self._od[(comm, 1)]
                 if valid and not value & PDO_COB_INVALID and (value & 0x7FF) != (old & 0x7FF):
-                    raise _Abort(0x0609_0030)   # change the COB-ID only while invalid
+                    raise SdoServerAbort(0x0609_0030)  # change the COB-ID only while invalid
                 if value & 0x7FF == 0:
-                    raise _Abort(0x0609_0030)
+                    raise SdoServerAbort(0x0609_0030)
             elif sub == 2 and not (value <= 240 or value in (254, 255)):
-                raise _Abort(0x0609_0030)
+                raise SdoServerAbort(0x0609_0030)
             self._od[o.address] = value
             self._rebuild_layout(direction, n)
             return
         if valid:
-            raise _Abort(0x0601_0000)           # mapping only while the PDO is not valid
+            raise SdoServerAbort(0x0601_0000)   # mapping only while the PDO is not valid
         if sub == 0:
             if value > 8:
-                raise _Abort(0x0609_0031)
+                raise SdoServerAbort(0x0609_0031)
             words = [self._od[(index, s)] for s in range(1, value + 1)]
             try:
                 PdoLayout.from_words(words, direction)
             except ConfigError as exc:
-                raise _Abort(0x0604_0042 if "64 bits" in str(exc) else 0x0604_0041) from None
+                raise SdoServerAbort(0x0604_0042 if "64 bits" in str(exc)
+                                     else 0x0604_0041) from None
             self._od[o.address] = value
             self._rebuild_layout(direction, n)
             return
         if self._od[(index, 0)] != 0:
-            raise _Abort(0x0601_0000)           # set sub 0 to 0 before changing entries
+            raise SdoServerAbort(0x0601_0000)   # set sub 0 to 0 before changing entries
         try:
             PdoLayout.from_words([value], direction)
         except ConfigError:
-            raise _Abort(0x0604_0041) from None
+            raise SdoServerAbort(0x0604_0041) from None
         self._od[o.address] = value
 
     # ------------------------------------------------------------------ PDO, SYNC

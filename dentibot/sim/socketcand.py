@@ -45,12 +45,12 @@ import socket
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Self
 
 import can
 import structlog
 
 from dentibot.errors import ConfigError, ProtocolError
+from dentibot.sim.canopen_node import BusAttached
 
 log = structlog.get_logger(__name__)
 
@@ -171,7 +171,7 @@ class _Client:
     errors: int = 0
 
 
-class SocketcandServer:
+class SocketcandServer(BusAttached):
     """socketcand endpoint for ``bus`` (a python-can bus, owned by the caller).
 
     Args:
@@ -227,10 +227,9 @@ class SocketcandServer:
             return
         if self._closed:
             raise ConfigError("socketcand", "closed", "a server that has not been closed")
-        loop = asyncio.get_running_loop()
         self._server = await asyncio.start_server(self._serve, self.host, self.port)
         self.port = self._server.sockets[0].getsockname()[1]
-        self._notifier = can.Notifier(self.bus, [self._on_bus_frame], timeout=0.05, loop=loop)
+        self._attach(self.bus, self._on_bus_frame)
         log.info("socketcand server listening", host=self.host, port=self.port,
                  channel=self.channel)
 
@@ -254,16 +253,7 @@ class SocketcandServer:
         if self._server is not None:
             await self._server.wait_closed()
             self._server = None
-        if self._notifier is not None:
-            self._notifier.stop(timeout=1.0)
-            self._notifier = None
-
-    async def __aenter__(self) -> Self:
-        await self.start()
-        return self
-
-    async def __aexit__(self, *exc) -> None:
-        await self.close()
+        self._detach()
 
     # ------------------------------------------------------------------ per client
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:

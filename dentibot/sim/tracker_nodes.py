@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Sequence
-from typing import Self
 
 import can
 import structlog
@@ -40,8 +39,10 @@ import structlog
 from dentibot.errors import ConfigError, ProtocolError
 from dentibot.io import canopen_protocol as co
 from dentibot.io import cia406
-from dentibot.io.canopen_protocol import NmtCommand, NmtState
+from dentibot.io.canopen_master import cancel_task
+from dentibot.io.canopen_protocol import NmtState
 from dentibot.io.tracker import DEFAULT_NODE_IDS
+from dentibot.sim.canopen_node import BusAttached, SdoServerAbort, SimNode
 from dentibot.sim.tracker_device import StringModel, TrackerSimParams
 from dentibot.sim.world import World
 
@@ -59,25 +60,16 @@ REVOLUTIONS = 4
 _HB_TICK_S = 0.005
 
 
-class _Abort(Exception):
-    def __init__(self, code: int) -> None:
-        self.code = code
-        super().__init__(f"SDO abort 0x{code:08X}")
-
-
-class EncoderNode:
+class EncoderNode(SimNode):
     """One simulated draw-wire encoder: string ``index`` (0-based) of ``model``."""
 
     def __init__(self, nodes: TrackerNodes, node_id: int, index: int) -> None:
+        super().__init__(node_id)
         self.nodes = nodes
-        self.node_id = co.check_node_id(node_id)
         self.index = index
         self.muted = False
-        self.nmt_state = NmtState.BOOT_UP
         self.od: dict[tuple[int, int], int] = {}
         self.tpdos_sent = 0
-        self.sdo_requests = 0
-        self.sdo_aborts = 0
         self._sync_count = 0
         self._hb_due = 0.0
         self._offset = 0
@@ -140,21 +132,12 @@ class EncoderNode:
         if not self.muted:
             self.nodes._send(can_id, data)
 
-    def boot(self) -> None:
-        self.nmt_state = NmtState.BOOT_UP
-        self.send(co.cob_id("HEARTBEAT", self.node_id), co.encode_heartbeat(NmtState.BOOT_UP))
-        self.nmt_state = NmtState.PRE_OPERATIONAL
+    _send = send
 
-    def on_nmt(self, cmd: NmtCommand) -> None:
-        if cmd is NmtCommand.START:
-            self.nmt_state = NmtState.OPERATIONAL
-        elif cmd is NmtCommand.STOP:
-            self.nmt_state = NmtState.STOPPED
-        elif cmd is NmtCommand.ENTER_PRE_OPERATIONAL:
-            self.nmt_state = NmtState.PRE_OPERATIONAL
-        else:                                   # reset node / communication
-            self.reset()
-            self.boot()
+    def _on_reset_node(self) -> None:
+        self.reset()                            # both resets restore the power-on values
+
+    _on_reset_communication = _on_reset_node
 
     def on_sync(self) -> None:
         if self.nmt_state is not NmtState.OPERATIONAL:
@@ -172,64 +155,44 @@ class EncoderNode:
         self.send(cob & 0x7FF, cia406.POSITION_TPDO.pack((self.position_value(),)))
         self.tpdos_sent += 1
 
-    def on_sdo(self, data: bytes) -> None:
-        if self.nmt_state not in (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL):
-            return
-        req = co.decode_sdo_request(data)
-        if req.kind == "abort":
-            return
-        self.sdo_requests += 1
-        try:
-            o = cia406.OBJECTS_BY_ADDRESS.get((req.index, req.sub))
-            if o is None:
-                raise _Abort(0x0602_0000 if req.index not in
-                             {i for i, _ in cia406.OBJECTS_BY_ADDRESS} else 0x0609_0011)
-            if req.kind == "upload":
-                reply = co.encode_sdo_upload_ack(req.index, req.sub,
-                                                 o.dtype.encode(self._read(o), o.name))
-            elif req.kind == "download" and req.expedited:
-                if o.access in ("ro", "const") or o.sub == 0 and o.name.endswith("highest_sub") \
-                        or o.name == "identity_count":
-                    raise _Abort(0x0601_0002)
-                payload = req.payload if req.size is not None else req.payload[:o.dtype.size]
-                if len(payload) != o.dtype.size:
-                    raise _Abort(0x0607_0010)
-                self._write(o, o.dtype.decode(payload, o.name))
-                reply = co.encode_sdo_download_ack(req.index, req.sub)
-            else:
-                raise _Abort(0x0504_0001)
-        except _Abort as ab:
-            self.sdo_aborts += 1
-            reply = co.encode_sdo_abort(req.index, req.sub, ab.code)
-        self.send(co.cob_id("SDO_TX", self.node_id), reply)
+    def _lookup(self, index: int, sub: int) -> co.OdObject:
+        o = cia406.OBJECTS_BY_ADDRESS.get((index, sub))
+        if o is None:
+            raise SdoServerAbort(0x0602_0000 if index not in
+                                 {i for i, _ in cia406.OBJECTS_BY_ADDRESS} else 0x0609_0011)
+        return o
 
-    def _write(self, o: co.OdObject, value: int) -> None:
+    def _sdo_writable(self, o: co.OdObject) -> bool:
+        return not (o.access in ("ro", "const") or o.sub == 0 and o.name.endswith("highest_sub")
+                    or o.name == "identity_count")
+
+    def _write_sdo(self, o: co.OdObject, value: int) -> None:
         od, objs = self.od, cia406.OBJECTS
         if o.index in (0x1800, 0x1A00) and self.nmt_state is NmtState.OPERATIONAL:
-            raise _Abort(0x0800_0022)
+            raise SdoServerAbort(0x0800_0022)
         if o.index == 0x1A00:
             valid = not od[objs["tpdo1_cob_id"].address] & co.PDO_COB_INVALID
             if o.sub == 0:
                 if valid or value > 1 or (value == 1 and od[objs["tpdo1_mapping_1"].address]
                                           != cia406.POSITION_MAPPING_WORD):
-                    raise _Abort(0x0604_0041 if value else 0x0601_0000)
+                    raise SdoServerAbort(0x0604_0041 if value else 0x0601_0000)
             elif valid or od[objs["tpdo1_mapped_count"].address] != 0:
-                raise _Abort(0x0601_0000)
+                raise SdoServerAbort(0x0601_0000)
             elif o.sub == 1 and value not in (0, cia406.POSITION_MAPPING_WORD):
-                raise _Abort(0x0604_0041)
+                raise SdoServerAbort(0x0604_0041)
         if o.name == "tpdo1_cob_id" and (value & 0x7FF) != co.cob_id("TPDO1", self.node_id):
-            raise _Abort(0x0609_0030)
+            raise SdoServerAbort(0x0609_0030)
         if o.name == "preset_value":
             _, wrap = self._scaled()
             if value >= wrap:
-                raise _Abort(0x0609_0031)
+                raise SdoServerAbort(0x0609_0031)
             self._offset = value - self.raw_position()
         if o.name in ("measuring_units_per_revolution", "total_measuring_range") and value == 0:
-            raise _Abort(0x0609_0032)
+            raise SdoServerAbort(0x0609_0032)
         od[o.address] = value
 
 
-class TrackerNodes:
+class TrackerNodes(BusAttached):
     """The tracker's encoders (one :class:`EncoderNode` per string) on ``bus`` over
     ``world``. ``start()``/``close()`` (or ``async with``); the bus stays the caller's."""
 
@@ -250,7 +213,6 @@ class TrackerNodes:
         self.errors = 0
         self.send_errors = 0
         self._sync_counts: tuple[int, ...] | None = None
-        self._notifier: can.Notifier | None = None
         self._hb_task: asyncio.Task | None = None
         self._started = self._closed = False
 
@@ -263,41 +225,23 @@ class TrackerNodes:
             return
         if self._closed:
             raise ConfigError("tracker_sim", "closed", "nodes that have not been closed")
-        loop = asyncio.get_running_loop()
-        self._notifier = can.Notifier(self.bus, [self._on_message], timeout=0.05, loop=loop)
+        self._attach(self.bus, self._on_message)
         self._started = True
         for n in self.nodes:
             n.boot()
-        self._hb_task = loop.create_task(self._heartbeat_loop(), name=f"{self.name}-heartbeat")
+        self._hb_task = asyncio.get_running_loop().create_task(
+            self._heartbeat_loop(), name=f"{self.name}-heartbeat")
 
     async def close(self) -> None:
         if self._closed:
             return
         self._closed = True
-        if self._hb_task is not None:
-            self._hb_task.cancel()
-            try:
-                await self._hb_task
-            except asyncio.CancelledError:
-                pass
-            self._hb_task = None
-        if self._notifier is not None:
-            self._notifier.stop(timeout=1.0)
-            self._notifier = None
-
-    async def __aenter__(self) -> Self:
-        await self.start()
-        return self
-
-    async def __aexit__(self, *exc) -> None:
-        await self.close()
+        task, self._hb_task = self._hb_task, None
+        await cancel_task(task)
+        self._detach()
 
     def _send(self, can_id: int, data: bytes) -> None:
-        try:
-            self.bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
-        except (can.CanError, OSError) as exc:
-            self.send_errors += 1
-            log.warning("tracker sim send failed", cob_id=hex(can_id), error=str(exc))
+        self._send_frame(can_id, data, "tracker sim send failed")
 
     def _on_message(self, msg: can.Message) -> None:
         if self._closed or msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
@@ -344,7 +288,7 @@ class TrackerNodes:
                     continue
                 if now >= n._hb_due + period:
                     n._hb_due = now
-                    n.send(co.cob_id("HEARTBEAT", n.node_id), co.encode_heartbeat(n.nmt_state))
+                    n.send_heartbeat()
 
 
 __all__ = ["PRODUCT_CODE", "VENDOR_ID", "EncoderNode", "TrackerNodes"]
