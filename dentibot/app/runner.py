@@ -11,7 +11,6 @@ possible, arm stopped; the recording and the summary are still written (status "
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import signal
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -22,7 +21,7 @@ import structlog
 
 from dentibot.app.procedure import Procedure
 from dentibot.app.steps import Aborted, StepExecutor
-from dentibot.app.tracking import tooth_config_from_devices
+from dentibot.app.tracking import sim_tracker, tracked_config
 from dentibot.errors import ConfigError
 from dentibot.io.devices import DevicesConfig, open_devices
 from dentibot.protocol.loader import ProtocolFileError
@@ -33,7 +32,6 @@ from dentibot.runtime.tool import tool_matrix
 from dentibot.sim.canal import CanalParams, material_params
 from dentibot.sim.ftsensor import FTSensorParams
 from dentibot.sim.nitifile import NiTiFile
-from dentibot.sim.tracker_device import TrackerSimParams
 from dentibot.sim.world import WorldConfig
 from dentibot.telemetry.foxglove import FoxgloveView
 from dentibot.telemetry.live import LiveView
@@ -183,12 +181,10 @@ class ProtocolRunner:
         if devices is None:
             self.procedure = Procedure.simulated(
                 world_config(protocol), runtime_config(protocol), calibrated=not calibrate,
-                sink=self._row, event_sink=self._event,
-                tracker=TrackerSimParams() if protocol.patient.tracker else None)
-        elif protocol.patient.tracker and devices.tracker is None:
-            raise ConfigError("patient.tracker", True, "a tracker section in the device file "
-                              "(depth in the tooth's frame needs the patient tracker)")
-        elif not calibrate:
+                sink=self._row, event_sink=self._event, tracker=sim_tracker(protocol))
+        else:
+            self._cfg = tracked_config(protocol, runtime_config(protocol), devices)
+        if devices is not None and not calibrate:
             raise ConfigError("steps", [s.kind for s in protocol.steps],
                               "a calibrate_load step (real devices need the load identified "
                               "before any force control)")
@@ -264,11 +260,8 @@ class ProtocolRunner:
             async with self.procedure:
                 return await self._run()
         async with open_devices(self.devices, resume_arm=self.resume_arm) as d:
-            cfg = runtime_config(self.p)
-            if self.p.patient.tracker:
-                cfg = dataclasses.replace(cfg,
-                                          tooth=tooth_config_from_devices(self.devices.tracker))
-            self.procedure = Procedure.over(d, cfg, sink=self._row, event_sink=self._event)
+            self.procedure = Procedure.over(d, self._cfg, sink=self._row,
+                                            event_sink=self._event)
             async with self.procedure:
                 return await self._run()
 

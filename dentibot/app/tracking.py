@@ -3,13 +3,18 @@ device file's ``tracker:`` section, or from the simulated tracker's geometry."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dentibot.control.strings import LengthLimits, StringGeometry
 from dentibot.errors import ConfigError
-from dentibot.io.devices import TrackerConfig
+from dentibot.io.devices import DevicesConfig, TrackerConfig
+from dentibot.protocol.schema import Protocol
+from dentibot.runtime.config import RuntimeConfig
 from dentibot.runtime.tooth import ToothConfig
+from dentibot.sim.tracker_device import TrackerSimParams
 
 
 def tooth_config_from_devices(t: TrackerConfig) -> ToothConfig:
@@ -30,3 +35,19 @@ def tooth_config_from_devices(t: TrackerConfig) -> ToothConfig:
                        mount_in_flange=mount, start_pose=start,
                        limits=LengthLimits(min_mm=t.min_length_mm, max_mm=t.max_length_mm),
                        sigma_mm=t.resolution_mm)
+
+
+def sim_tracker(p: Protocol) -> TrackerSimParams | None:
+    """The simulated tracker a protocol asks for on the built-in simulator (None: none)."""
+    return TrackerSimParams() if p.patient.tracker else None
+
+
+def tracked_config(p: Protocol, cfg: RuntimeConfig, devices: DevicesConfig) -> RuntimeConfig:
+    """``cfg`` with depth in the tooth's frame when the protocol asks for the tracker; a
+    ConfigError, before anything connects, when the device file has no tracker section."""
+    if not p.patient.tracker:
+        return cfg
+    if devices.tracker is None:
+        raise ConfigError("patient.tracker", True, "a tracker section in the device file "
+                          "(depth in the tooth's frame needs the patient tracker)")
+    return dataclasses.replace(cfg, tooth=tooth_config_from_devices(devices.tracker))

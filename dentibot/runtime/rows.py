@@ -23,6 +23,7 @@ def telemetry_row(rt, k: int, est: Estimate, qdot, events, lateness_s: float,
             qdot.tolist() if type(qdot) is np.ndarray else [float(x) for x in qdot]),
         "tool_pose": [*est.tip_0, *euler],
         "phantom_pose": None,
+        "tooth_pose": _tooth_pose(rt.ctx.tooth),
         "wrench_s": est.wrench_s.tolist(), "wrench_h": est.wrench_h.tolist(),
         "f_d": [0.0, 0.0, fz, 0.0, 0.0, 0.0],
         # the PD output that decided this tick (also when it just triggered a reversal)
@@ -41,3 +42,11 @@ def telemetry_row(rt, k: int, est: Estimate, qdot, events, lateness_s: float,
     if rt.truth is not None:
         row.update(rt.truth())
     return row
+
+
+def _tooth_pose(tooth) -> list[float] | None:
+    """The tracked tooth's pose in {0} as x, y, z mm and mobile XYZ Euler angles (deg)."""
+    t = None if tooth is None else tooth.pose_0t
+    if t is None:
+        return None
+    return [*t[:3, 3].tolist(), *euler_xyz_deg(t[:3, :3].tolist())]

@@ -30,6 +30,7 @@ import structlog
 from dentibot.app.procedure import Procedure
 from dentibot.app.runner import runtime_config, world_config
 from dentibot.app.steps import StepExecutor, align_plan
+from dentibot.app.tracking import sim_tracker, tracked_config
 from dentibot.errors import DentibotError
 from dentibot.io.devices import DevicesConfig, load_devices_config, open_devices
 from dentibot.protocol.schema import Protocol
@@ -120,6 +121,10 @@ class PanelData:
     working_length_mm: float = 0.0
     true_depth_mm: float | None = None
     completeness: float | None = None
+    #: where depth is measured: "tooth" (patient tracker), "base" (the robot's frame)
+    depth_frame: str = "base"
+    #: the tracked tooth's position in the base frame (mm), None without it
+    tooth_mm: list[float] | None = None
     wrench_h: list[float] | None = None
     file_torque_mnm: float | None = None
     torque_limit_mnm: float = 0.0
@@ -515,9 +520,11 @@ class SessionController:
         if self.devices_cfg is None:
             proc = Procedure.simulated(
                 world_config(p), runtime_config(p), calibrated=self.opt.calibrated,
+                tracker=sim_tracker(p),
                 time=SIM_TIME[self.opt.clock], drive=False, sink=self._row,
                 event_sink=self._event)
         else:
+            cfg = tracked_config(p, runtime_config(p), self.devices_cfg)   # before connecting
             stack = contextlib.AsyncExitStack()
             try:
                 d = await stack.enter_async_context(open_devices(self.devices_cfg,
@@ -526,7 +533,7 @@ class SessionController:
                 await stack.aclose()
                 raise
             self._stack = stack
-            proc = Procedure.over(d, runtime_config(p), sink=self._row, event_sink=self._event)
+            proc = Procedure.over(d, cfg, sink=self._row, event_sink=self._event)
         proc.on_stopped = self._control_stopped
         self.procedure, self.world, self.runtime = proc, proc.world, proc.runtime
         self.control_error = None
@@ -724,6 +731,8 @@ class SessionController:
             busy=self._busy, t_s=rt.ticks * rt.ts,
             depth_mm=row.get("depth_mm"), working_length_mm=rt.cfg.plan.working_length_mm,
             true_depth_mm=row.get("true_depth_mm"), completeness=row.get("completeness"),
+            depth_frame="tooth" if rt.ctx.tooth is not None else "base",
+            tooth_mm=None if row.get("tooth_pose") is None else list(row["tooth_pose"][:3]),
             wrench_h=[float(x) for x in wh] if wh is not None else None,
             file_torque_mnm=row.get("file_torque_mnm"),
             torque_limit_mnm=rt.cfg.thresholds.torque_limit_mnm,

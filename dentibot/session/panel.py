@@ -82,6 +82,11 @@ def render_lines(d: PanelData) -> list[Text]:
     t = _line(lines, "Depth")
     b, _ = bar(d.depth_mm, d.working_length_mm)
     t.append(f"{_num(d.depth_mm, '6.2f')} / {d.working_length_mm:.2f} mm  [{b}]")
+    if d.depth_frame == "tooth":
+        where = "--" if d.tooth_mm is None else " ".join(f"{x:.1f}" for x in d.tooth_mm)
+        t.append(f"  in the tooth (at {where} mm)")
+    else:
+        t.append("  in the robot's frame", style="dim")
     if d.true_depth_mm is not None:
         t.append(f"  sim: true {d.true_depth_mm:.2f} mm", style="dim")
         if d.completeness is not None:

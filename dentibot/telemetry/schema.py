@@ -114,6 +114,10 @@ TICK_FIELDS: tuple[Field, ...] = (
     Field("phantom_pose", "number", "mm, deg",
           "root phantom pose, same convention as tool_pose (known on the simulator only)",
           6, nullable=True),
+    Field("tooth_pose", "number", "mm, deg",
+          "tooth (tracker clamp) pose in the base frame from the patient tracker, same "
+          "convention as tool_pose; unknown without a tracker or while its strings fail",
+          6, nullable=True),
     Field("wrench_s", "number", "N, N*m",
           "external wrench in the sensor frame (offset and gravity removed)", 6),
     Field("wrench_h", "number", "N, N*m",

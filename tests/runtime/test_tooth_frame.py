@@ -79,6 +79,9 @@ async def test_a_broken_string_with_the_file_in_the_canal_stops_everything_withi
     h, rows = harness(seed=3, tracker=TrackerSimParams())
     w = h.world
     await _drill_until_deep(h, 3.0)
+    # the row carries the tracked tooth: the clamp frame is the phantom's ({T} = {P} in the
+    # simulated tracker), so its origin is the simulator's orifice, to the encoders' accuracy
+    np.testing.assert_allclose(rows[-1]["tooth_pose"][:3], w.phantom_origin_0(), atol=0.05)
     tracker = h.runtime.dev.tracker
     k0 = len(rows)
     tracker.model.broken.add(2)                            # string 3 snaps: winds in fully
@@ -97,3 +100,4 @@ async def test_before_the_file_goes_in_a_broken_string_only_loses_the_tooth_pose
     await h.run_for(ticks=20)
     assert h.runtime.state == "idle"
     assert h.runtime.ctx.tooth.pose_0t is None
+    assert rows[-1]["tooth_pose"] is None

@@ -20,14 +20,14 @@ from dentibot.telemetry.schema import none_fields
 # The fields the telemetry spec asks for, in its order, with their array sizes.
 SPEC_FIELDS = {
     "t": None, "tick": None, "step": None, "state": None, "q_deg": 6, "qdot_cmd_deg_s": 6,
-    "tool_pose": 6, "phantom_pose": 6, "wrench_s": 6, "wrench_h": 6, "f_d": 6,
+    "tool_pose": 6, "phantom_pose": 6, "tooth_pose": 6, "wrench_s": 6, "wrench_h": 6, "f_d": 6,
     "fz_star_n": None, "fz_n": None, "file_torque_mnm": None, "motor_current_a": None,
     "motor_rpm": None, "depth_mm": None, "true_depth_mm": None, "working_length_mm": None,
     "completeness": None,
     "patient_moved": None, "reversals": None, "fractured": None, "events": 0,
     "lateness_us": None, "compute_us": None, "overrun": None,
 }
-NULLABLE = {"phantom_pose", "depth_mm", "working_length_mm", "completeness", "true_depth_mm"}
+NULLABLE = {"phantom_pose", "tooth_pose", "depth_mm", "working_length_mm", "completeness", "true_depth_mm"}
 # Not in the spec's list: the simulator's true depth, which the runtime adds (optional).
 OPTIONAL = {"true_depth_mm"}
 
