@@ -47,7 +47,7 @@ def bench_record(config: str, k: float, b6: float, rotate: bool, *, seed: int = 
     w = World(cfg)
     path = w.motion
     w.sensor.bias()
-    g_tare = w.sensor.true_wrench(w._R06, (0.0,) * 3, (0.0,) * 3)
+    g_tare = w.sensor.true_wrench(w.flange_rotation, (0.0,) * 3, (0.0,) * 3)
     b45 = math.inf if hold_tilt else 80.0
     params = AdmittanceParams(k=k, b=(80, 80, 80, b45, b45, b6),
                               m=(0.08, 0.08, 0.08, b45 / 1000.0, b45 / 1000.0, b6 / 1000.0),
@@ -55,7 +55,8 @@ def bench_record(config: str, k: float, b6: float, rotate: bool, *, seed: int = 
     ctl = AdmittanceController(robot=w.kin, params=params, ts=w.ts)
     if rotate:
         w.handpiece.set_velocity(60.0)
-    c, s = w.sensor._c, w.sensor._s
+    th = math.radians(w.sensor.p.mount_angle_deg)          # {S} turned about the flange z
+    c, s = math.cos(th), math.sin(th)
     lever = (w.sensor.p.offset_mm - float(cfg.tool[2, 3])) * 1e-3   # {S} - tip, m
     duration = settle_s + path.duration_s + tail_s
     n = round(duration / w.ts)
@@ -66,7 +67,7 @@ def bench_record(config: str, k: float, b6: float, rotate: bool, *, seed: int = 
     for i in range(n):
         w.step()
         last = w.sensor.last
-        gw = w.sensor.true_wrench(w._R06, (0.0,) * 3, (0.0,) * 3)
+        gw = w.sensor.true_wrench(w.flange_rotation, (0.0,) * 3, (0.0,) * 3)
         e = [last[j] - (gw[j] - g_tare[j]) for j in range(6)]
         f6 = (c * e[0] - s * e[1], s * e[0] + c * e[1], e[2])
         t6 = (c * e[3] - s * e[4], s * e[3] + c * e[4], e[5])
