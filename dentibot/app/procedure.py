@@ -28,7 +28,8 @@ from typing import Any
 import structlog
 
 from dentibot.app.simulated import Truth, World, WorldConfig, plan_config, sim_devices, \
-    tooth_config, true_gravity_model
+    true_gravity_model
+from dentibot.app.tracking import sim_tooth_config
 from dentibot.control.wrench import GravityModel
 from dentibot.runtime.clock import Clock, LockStepClock, RealTimeClock
 from dentibot.runtime.config import RuntimeConfig
@@ -106,7 +107,7 @@ class Procedure:
         cfg = plan_config(w, config)
         dev = sim_devices(w, tracker)
         if tracker is not None and cfg.tooth is None:
-            cfg = dataclasses.replace(cfg, tooth=tooth_config(w, tracker))
+            cfg = dataclasses.replace(cfg, tooth=sim_tooth_config(w, tracker))
         if devices is not None:
             dev = devices(w, dev)
         clock = LockStepClock(w.step, cfg.period_s, paced=time == "paced",

@@ -12,14 +12,12 @@ import dataclasses
 import numpy as np
 
 from dentibot.control.kinematics import euler_xyz_deg
-from dentibot.control.strings import LengthLimits
 from dentibot.control.wrench import GravityModel
 from dentibot.runtime.config import RuntimeConfig, ToolGeometry, TreatmentPlan
 from dentibot.runtime.estimate import Devices
-from dentibot.runtime.tooth import ToothConfig
 from dentibot.sim.devices import make_devices
 from dentibot.sim.faults import Jerk
-from dentibot.sim.tracker_device import SimPatientTracker, StringModel, TrackerSimParams
+from dentibot.sim.tracker_device import SimPatientTracker, TrackerSimParams
 from dentibot.sim.patient import SQUARE_MM, StewartSquare
 from dentibot.sim.serve import ServePorts, VirtualDentiBot
 from dentibot.sim.world import World, WorldConfig
@@ -66,16 +64,6 @@ def sim_devices(world: World, tracker: TrackerSimParams | None = None) -> Device
     tracker when ``tracker`` gives its geometry)."""
     return Devices(*make_devices(world),
                    tracker=None if tracker is None else SimPatientTracker(world, tracker))
-
-
-def tooth_config(world: World, tracker: TrackerSimParams) -> ToothConfig:
-    """What the runtime knows of the simulated tracker: its anchors and mount (as a calibration
-    would have identified them), and the clamp's pose at set-up as the first guess."""
-    return ToothConfig(geometry=tracker.geometry, mount_in_flange=tracker.mount_in_flange,
-                       start_pose=StringModel(world, tracker).tooth_in_mount(),
-                       limits=LengthLimits(min_mm=tracker.min_length_mm,
-                                           max_mm=tracker.max_length_mm),
-                       sigma_mm=tracker.resolution_mm)
 
 
 class Truth:

@@ -1,5 +1,6 @@
 """The patient tracker as the runtime sees it: the tooth-frame depth's configuration from a
-device file's ``tracker:`` section, or from the simulated tracker's geometry."""
+device file's ``tracker:`` section (:func:`tooth_config_from_devices`) or from the simulated
+tracker's geometry (:func:`sim_tooth_config`), and what a protocol asks for."""
 
 from __future__ import annotations
 
@@ -14,7 +15,8 @@ from dentibot.io.devices import DevicesConfig, TrackerConfig
 from dentibot.protocol.schema import Protocol
 from dentibot.runtime.config import RuntimeConfig
 from dentibot.runtime.tooth import ToothConfig
-from dentibot.sim.tracker_device import TrackerSimParams
+from dentibot.sim.tracker_device import StringModel, TrackerSimParams
+from dentibot.sim.world import World
 
 
 def tooth_config_from_devices(t: TrackerConfig) -> ToothConfig:
@@ -51,3 +53,13 @@ def tracked_config(p: Protocol, cfg: RuntimeConfig, devices: DevicesConfig) -> R
         raise ConfigError("patient.tracker", True, "a tracker section in the device file "
                           "(depth in the tooth's frame needs the patient tracker)")
     return dataclasses.replace(cfg, tooth=tooth_config_from_devices(devices.tracker))
+
+
+def sim_tooth_config(world: World, tracker: TrackerSimParams) -> ToothConfig:
+    """What the runtime knows of the simulated tracker: its anchors and mount (as a calibration
+    would have identified them), and the clamp's pose at set-up as the first guess."""
+    return ToothConfig(geometry=tracker.geometry, mount_in_flange=tracker.mount_in_flange,
+                       start_pose=StringModel(world, tracker).tooth_in_mount(),
+                       limits=LengthLimits(min_mm=tracker.min_length_mm,
+                                           max_mm=tracker.max_length_mm),
+                       sigma_mm=tracker.resolution_mm)
