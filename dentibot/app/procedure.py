@@ -94,20 +94,22 @@ class Procedure:
                   sink: RowSink | None = None, event_sink: EventSink | None = None,
                   keep_rows: bool = False, step_name: str = "",
                   devices: Callable[[World, Devices], Devices] | None = None,
-                  tracker: TrackerSimParams | None = None) -> Procedure:
+                  tracker: TrackerSimParams | None = None,
+                  hybrid: bool = False) -> Procedure:
         """The built-in simulator under a runtime. ``config`` defaults to one that agrees with
         the world (:func:`~dentibot.app.simulated.plan_config`); ``calibrated``: the load is
         known (the sensor's true offsets), else a load calibration must come first; ``time``
         one of :data:`SIM_TIMES`; ``devices(world, devices)`` may wrap the simulated devices
         (fault injection); ``tracker``: a simulated patient tracker of this geometry, and
-        depth measured in the tooth's frame (unless ``config`` says otherwise)."""
+        depth measured in the tooth's frame (unless ``config`` says otherwise); ``hybrid``:
+        and its motion fed forward to the arm."""
         if time not in SIM_TIMES:
             raise ValueError(f"time {time!r}: one of {', '.join(SIM_TIMES)}")
         w = world if isinstance(world, World) else World(world)
         cfg = plan_config(w, config)
         dev = sim_devices(w, tracker)
         if tracker is not None and cfg.tooth is None:
-            cfg = dataclasses.replace(cfg, tooth=sim_tooth_config(w, tracker))
+            cfg = dataclasses.replace(cfg, tooth=sim_tooth_config(w, tracker, hybrid))
         if devices is not None:
             dev = devices(w, dev)
         clock = LockStepClock(w.step, cfg.period_s, paced=time == "paced",

@@ -181,7 +181,8 @@ class ProtocolRunner:
         if devices is None:
             self.procedure = Procedure.simulated(
                 world_config(protocol), runtime_config(protocol), calibrated=not calibrate,
-                sink=self._row, event_sink=self._event, tracker=sim_tracker(protocol))
+                sink=self._row, event_sink=self._event, tracker=sim_tracker(protocol),
+                hybrid=protocol.patient.tracking == "hybrid")
         else:
             self._cfg = tracked_config(protocol, runtime_config(protocol), devices)
         if devices is not None and not calibrate:

@@ -19,7 +19,7 @@ from dentibot.sim.tracker_device import StringModel, TrackerSimParams
 from dentibot.sim.world import World
 
 
-def tooth_config_from_devices(t: TrackerConfig) -> ToothConfig:
+def tooth_config_from_devices(t: TrackerConfig, feedforward: bool = False) -> ToothConfig:
     """Anchors, the mount on the flange (mobile x-y-z Euler angles, as the Meca500 states
     poses), the clamp's set-up position as the first guess, and the strings' limits. Depth in
     the tooth's frame needs the full pose: six strings (three give the position only)."""
@@ -36,7 +36,7 @@ def tooth_config_from_devices(t: TrackerConfig) -> ToothConfig:
                                                np.array(t.tooth_anchors_mm, float)),
                        mount_in_flange=mount, start_pose=start,
                        limits=LengthLimits(min_mm=t.min_length_mm, max_mm=t.max_length_mm),
-                       sigma_mm=t.resolution_mm)
+                       sigma_mm=t.resolution_mm, feedforward=feedforward)
 
 
 def sim_tracker(p: Protocol) -> TrackerSimParams | None:
@@ -52,14 +52,17 @@ def tracked_config(p: Protocol, cfg: RuntimeConfig, devices: DevicesConfig) -> R
     if devices.tracker is None:
         raise ConfigError("patient.tracker", True, "a tracker section in the device file "
                           "(depth in the tooth's frame needs the patient tracker)")
-    return dataclasses.replace(cfg, tooth=tooth_config_from_devices(devices.tracker))
+    return dataclasses.replace(cfg, tooth=tooth_config_from_devices(
+        devices.tracker, feedforward=p.patient.tracking == "hybrid"))
 
 
-def sim_tooth_config(world: World, tracker: TrackerSimParams) -> ToothConfig:
+def sim_tooth_config(world: World, tracker: TrackerSimParams,
+                     feedforward: bool = False) -> ToothConfig:
     """What the runtime knows of the simulated tracker: its anchors and mount (as a calibration
-    would have identified them), and the clamp's pose at set-up as the first guess."""
+    would have identified them), and the clamp's pose at set-up as the first guess;
+    ``feedforward``: hybrid control."""
     return ToothConfig(geometry=tracker.geometry, mount_in_flange=tracker.mount_in_flange,
                        start_pose=StringModel(world, tracker).tooth_in_mount(),
                        limits=LengthLimits(min_mm=tracker.min_length_mm,
                                            max_mm=tracker.max_length_mm),
-                       sigma_mm=tracker.resolution_mm)
+                       sigma_mm=tracker.resolution_mm, feedforward=feedforward)

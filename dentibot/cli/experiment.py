@@ -198,7 +198,8 @@ def cmd_patient_jerk(args: argparse.Namespace) -> int:
     con = _console()
     con.print(t)
     con.print("force: depth in the robot's base frame (the thesis); tracked: depth in the "
-              "tooth's frame from the patient tracker. overshoot: the deepest true tip depth "
+              "tooth's frame from the patient tracker; hybrid: that, and the tooth's motion "
+              "fed forward to the arm. overshoot: the deepest true tip depth "
               "past the working length; past WL: time more than 0.2 mm past it; depth error: "
               "true minus measured, 0.5 s after the jerk.")
     con.print(_checks_table(result.checks))
@@ -404,8 +405,8 @@ def add_parser(sub) -> None:
     j.add_argument("--mm-s", type=float, default=20.0,
                    help="the jerk's speed (mm/s, default 20)")
     j.add_argument("--seed", type=int, default=1, help="the simulated world's seed (default 1)")
-    j.add_argument("--workers", type=_positive, default=min(2, default_workers()),
-                   metavar="W", help="parallel local processes (default: up to 2, one per mode)")
+    j.add_argument("--workers", type=_positive, default=min(3, default_workers()),
+                   metavar="W", help="parallel local processes (default: up to 3, one per mode)")
     j.add_argument("--json", action="store_true", help="print the results as one JSON object")
     j.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     j.set_defaults(func=cmd_patient_jerk)

@@ -210,12 +210,18 @@ class AdmittanceController:
         when the caller needs the chain too (one forward pass per tick)."""
         return self.robot.tool_jacobian(q_deg, self.ref_point_h_mm, with_frames=True)
 
-    def step(self, q_deg, wrench: np.ndarray, kin=None) -> JointCommand:
+    def step(self, q_deg, wrench: np.ndarray, kin=None,
+             feedforward: np.ndarray | None = None) -> JointCommand:
         """Advance one period from the joint angles ``q_deg`` with the wrench (N, N*m).
 
-        ``kin`` is ``self.kinematics(q_deg)`` if the caller already has it.
-        """
+        ``kin`` is ``self.kinematics(q_deg)`` if the caller already has it. ``feedforward``
+        (mm/s, rad/s in {H} at the reference point) is added to the admittance's twist, after
+        the filter: the motion of what the tool is in contact with (hybrid position/force
+        control: the tracked tooth's velocity), so that the force law only has to correct
+        the remainder."""
         twist = self._filter.step(wrench)
+        if feedforward is not None:
+            twist = twist + feedforward
         robot = self.robot
         jh, frames = kin if kin is not None else self.kinematics(q_deg)
         if robot.singularity(q_deg, frames=frames).value > 0.2:

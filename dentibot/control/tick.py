@@ -38,12 +38,12 @@ def external_wrench_h(gravity: GravityModel, to_h: WrenchTransform, wrench_s_raw
 
 
 def admittance_command(admittance: AdmittanceController, q_deg, wrench_h: np.ndarray,
-                       fz_n: float, kin) -> JointCommand:
+                       fz_n: float, kin, feedforward: np.ndarray | None = None) -> JointCommand:
     """One admittance step driven by ``wrench_h`` plus the desired insertion force ``fz_n``
-    along the file axis z_H (f_d of 4.4)."""
+    along the file axis z_H (f_d of 4.4), with an optional ``feedforward`` twist in {H}."""
     f_in = wrench_h.copy()
     f_in[2] += fz_n
-    return admittance.step(q_deg, f_in, kin)
+    return admittance.step(q_deg, f_in, kin, feedforward)
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,9 @@ the same motion:
 - ``force``: the thesis's depth, in the robot's base frame; the file follows the tooth by
   force alone and the tooth's travel along the axis goes unseen;
 - ``tracked``: depth in the tooth's frame from the patient tracker
-  (:mod:`dentibot.runtime.tooth`): the working-length stop follows the tooth.
+  (:mod:`dentibot.runtime.tooth`): the working-length stop follows the tooth;
+- ``hybrid``: the same, and the tracked tooth's motion fed forward to the arm (hybrid
+  position/force control): the file moves with the tooth, the force law corrects the rest.
 
 Each run is watched for ``watch_s`` (default 3 s) after the jerk, then stopped safely.
 Figures per mode: ``overshoot_mm`` (the deepest true tip depth past the working length, in
@@ -30,7 +32,7 @@ from dentibot.app.simulated import Jerk
 from dentibot.experiments.common import Check, run_protocol
 from dentibot.protocol.loader import parse_protocol
 
-MODES = ("force", "tracked")
+MODES = ("force", "tracked", "hybrid")
 #: How close to the working length (mm) the measured depth is when the jerk starts.
 NEAR_WL_MM = 0.3
 
@@ -66,7 +68,8 @@ class JerkRun:
 def _protocol(spec: JerkSpec):
     return parse_protocol(
         f"name: patient-jerk-{spec.mode}\nseed: {spec.seed}\n"
-        f"patient: {{tracker: {'true' if spec.mode == 'tracked' else 'false'}}}\n"
+        f"patient: {{tracker: {'false' if spec.mode == 'force' else 'true'}, "
+        f"tracking: {'hybrid' if spec.mode == 'hybrid' else 'force'}}}\n"
         "steps:\n  - align: {duration_s: 0.5}\n  - drill: {}\n")
 
 
@@ -115,11 +118,13 @@ def checks(runs: dict[str, JerkRun]) -> list[Check]:
     """What the patient tracker is for: the working length holds in the tooth (within
     0.2 mm) when the patient moves along the canal, and without it the overshoot shows."""
     out = []
-    t, f = runs.get("tracked"), runs.get("force")
+    t, f, h = runs.get("tracked"), runs.get("force"), runs.get("hybrid")
+    if h is not None:
+        out.append(Check("with hybrid control the tip never passes the working length by "
+                         "more than 0.2 mm (tooth frame)",
+                         h.overshoot_mm <= 0.2 and not h.fractures,
+                         f"overshoot {h.overshoot_mm:.2f} mm, fractures {h.fractures}"))
     if t is not None:
-        out.append(Check("with the tracker the tip never passes the working length by more "
-                         "than 0.2 mm (tooth frame)", t.overshoot_mm <= 0.2 and not t.fractures,
-                         f"overshoot {t.overshoot_mm:.2f} mm, fractures {t.fractures}"))
         out.append(Check("with the tracker the measured depth stays true after the jerk "
                          "(within 0.2 mm)", t.depth_error_mm is not None
                          and abs(t.depth_error_mm) <= 0.2,

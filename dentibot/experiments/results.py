@@ -369,8 +369,8 @@ def patient_jerk_experiment(*, mm: float = 3.0, mm_s: float = 20.0, seed: int = 
                             workers: int | None = None, progress: Progress | None = None,
                             cancel: threading.Event | None = None) -> PatientJerkResult:
     """The tooth steps ``mm`` towards the robot along the canal at ``mm_s`` while the file
-    works at the working length, with depth in the base frame (``force``) and in the tooth's
-    frame (``tracked``)."""
+    works at the working length, with depth in the base frame (``force``), in the tooth's
+    frame (``tracked``), and with hybrid control (``hybrid``)."""
     in_range("mm", [mm], "mm", 10.0)
     in_range("mm_s", [mm_s], "mm/s", 200.0)
     specs = [pj.JerkSpec(mode=m, mm=mm, mm_s=mm_s, seed=seed) for m in pj.MODES]

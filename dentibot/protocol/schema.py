@@ -162,6 +162,10 @@ class PatientSpec(Strict):
                            "in the robot's base frame, as in the thesis, and the working "
                            "length is not protected against the patient moving along the "
                            "canal")
+    tracking: Literal["force", "hybrid"] = Field(
+        "force", description="how the arm follows the patient: force (the thesis: by the "
+                             "admittance law alone) or hybrid (the tracked tooth's motion fed "
+                             "forward, the force law correcting the rest; needs tracker)")
 
 
 class StalePeriods(Strict):
@@ -300,6 +304,9 @@ class Protocol(Strict):
         the largest share of the file's strength the hard torque limit may be (only a study on
         the built-in simulator, without the runtime's net, raises it)."""
         out: list[tuple[tuple, str]] = []
+        if self.patient.tracking == "hybrid" and not self.patient.tracker:
+            out.append((("patient", "tracking"), "hybrid needs the patient tracker (set "
+                        "patient.tracker: true): the tooth's motion comes from it"))
         wl, length = self.phantom.working_length_mm, self.file.length_mm
         if wl + FILE_CLEARANCE_MM > length:
             out.append((("phantom", "working_length_mm"),

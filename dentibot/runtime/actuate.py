@@ -61,8 +61,10 @@ async def arm_command(rt, est):
     if mode.arm == "hold":
         await arm.move_joints_vel(_ZERO6)
         return _ZERO6
+    tooth = rt.ctx.tooth
+    ff = None if tooth is None else tooth.feedforward_h(rt.r_0_6 @ rt.R_6_H)
     cmd = admittance_command(rt.admittance, est.q_deg, est.wrench_h,
-                             feed_force_n(mode, rt.ctx, rt.cfg.plan), rt.chain)
+                             feed_force_n(mode, rt.ctx, rt.cfg.plan), rt.chain, ff)
     bad = rt.supervisor.check_command(cmd.qdot_deg_s, cmd.twist, rt.speed_limits)
     if bad:
         rt.pending.extend(("fault", str(f)) for f in bad)

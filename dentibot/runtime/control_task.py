@@ -69,7 +69,8 @@ class Runtime:
         self.ctx = Context(make_strategy(config.plan.strategy, config.plan.working_length_mm,
                                          self.ts))
         self.behaviours = make_behaviours()
-        self.ctx.tooth = ToothFrame(config.tooth) if config.tooth and devices.tracker else None
+        self.ctx.tooth = ToothFrame(config.tooth, self.ts) if config.tooth and devices.tracker \
+            else None
         self.supervisor = Supervisor(config.thresholds.stale_periods, self.ts,
                                      config.thresholds.supervisor)
         self.stats = DeadlineStats(self.ts, deadlines=clock.realtime)

@@ -47,13 +47,23 @@ class ToothConfig:
     start_pose: np.ndarray = field(default_factory=lambda: np.eye(4))
     limits: LengthLimits = field(default_factory=LengthLimits)
     sigma_mm: float = 0.01
+    #: hybrid control: the arm moves with the tooth (its velocity fed forward)
+    feedforward: bool = False
+    #: time constant of the tooth velocity's low-pass filter (s) and the speed below which
+    #: nothing is fed forward (mm/s): a still patient feeds no encoder noise to the arm
+    velocity_tau_s: float = 0.008
+    deadband_mm_s: float = 2.0
 
 
 class ToothFrame:
     """The tracked tooth and the depth reference in its frame (see the module docstring)."""
 
-    def __init__(self, cfg: ToothConfig) -> None:
+    def __init__(self, cfg: ToothConfig, period_s: float = 0.002) -> None:
         self.cfg = cfg
+        self.ts = period_s
+        self._alpha = period_s / (cfg.velocity_tau_s + period_s)
+        self.velocity_0: np.ndarray | None = None   # the orifice's velocity (mm/s), filtered
+        self._o_prev: np.ndarray | None = None
         self.pose_mt: np.ndarray | None = None      # MT_T of the last good tick
         self.pose_0t: np.ndarray | None = None      # 0T_T of the last good tick
         self.residual_mm = float("nan")
@@ -106,10 +116,28 @@ class ToothFrame:
                                          "is lost with the file in the canal")
         ref = self.reference_0()
         ctx.depth_ref = ref
+        self._track_velocity(np.array(ref[0]))
         tip = est.tip_0
         o, a = ref
         est.depth_mm = sum((tip[i] - o[i]) * a[i] for i in range(3))
         return None
+
+    def _track_velocity(self, o: np.ndarray) -> None:
+        if self._o_prev is not None:
+            raw = (o - self._o_prev) / self.ts
+            v = self.velocity_0
+            self.velocity_0 = raw if v is None else v + self._alpha * (raw - v)
+        self._o_prev = o
+
+    def feedforward_h(self, r_0_h: np.ndarray) -> np.ndarray | None:
+        """Hybrid control's feedforward: the orifice's velocity in {H} axes as a twist (mm/s;
+        no rotation), while a reference is held and the tooth moves faster than the
+        deadband; None otherwise (or without ``feedforward`` in the configuration)."""
+        v = self.velocity_0
+        if not self.cfg.feedforward or self._ref_t is None or v is None \
+                or self.pose_0t is None or float(np.linalg.norm(v)) < self.cfg.deadband_mm_s:
+            return None
+        return np.concatenate([r_0_h.T @ v, np.zeros(3)])
 
     def register(self, orifice_0, axis_0) -> None:
         """Keep the depth reference (orifice point, canal axis; {0}) in the tooth's frame."""
@@ -121,6 +149,7 @@ class ToothFrame:
 
     def forget(self) -> None:
         self._ref_t = None
+        self.velocity_0 = self._o_prev = None
 
     def reference_0(self) -> tuple[tuple, tuple] | None:
         """The registered reference mapped into {0} with the tooth's pose now."""

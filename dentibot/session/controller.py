@@ -520,7 +520,7 @@ class SessionController:
         if self.devices_cfg is None:
             proc = Procedure.simulated(
                 world_config(p), runtime_config(p), calibrated=self.opt.calibrated,
-                tracker=sim_tracker(p),
+                tracker=sim_tracker(p), hybrid=p.patient.tracking == "hybrid",
                 time=SIM_TIME[self.opt.clock], drive=False, sink=self._row,
                 event_sink=self._event)
         else:

@@ -16,14 +16,16 @@ from dentibot.control.feedrate import FILE_STRENGTH_MNM
 def test_patient_jerk_json_gives_both_modes_side_by_side(capsys):
     code = main(["experiment", "patient-jerk", "--json", "--quiet", "--workers", "1"])
     d = json.loads(capsys.readouterr().out)
-    force, tracked = d["modes"]["force"], d["modes"]["tracked"]
+    force, tracked, hybrid = (d["modes"][m] for m in ("force", "tracked", "hybrid"))
     # base-frame depth misses the tooth's 3 mm travel along the canal; the tooth frame not
     assert force["depth_error_mm"] == pytest.approx(3.0, abs=0.2)
     assert abs(tracked["depth_error_mm"]) <= 0.2
     # the force-only file stays pressed past the working length; the tracked one withdraws
     assert force["past_wl_s"] > 2.0 > 1.0 > tracked["past_wl_s"]
     assert tracked["final_state"] == "treating.retracting"
-    for m in (force, tracked):
+    # hybrid control: the file moves with the tooth, the working length holds within 0.2 mm
+    assert hybrid["overshoot_mm"] <= 0.2 and abs(hybrid["depth_error_mm"]) <= 0.2
+    for m in (force, tracked, hybrid):
         assert m["fractures"] == 0 and m["peak_torque_mNm"] < FILE_STRENGTH_MNM
         assert m["overshoot_mm"] >= 0.0
     checks = {c["claim"]: c["passed"] for c in d["checks"]}

@@ -101,3 +101,32 @@ async def test_before_the_file_goes_in_a_broken_string_only_loses_the_tooth_pose
     assert h.runtime.state == "idle"
     assert h.runtime.ctx.tooth.pose_0t is None
     assert rows[-1]["tooth_pose"] is None
+
+
+@pytest.mark.parametrize("speed, fed", [(20.0, True), (1.0, False)])
+def test_the_feedforward_is_the_orifices_velocity_in_h_above_the_deadband(speed, fed):
+    """The orifice moves at ``speed`` mm/s along base x for 0.2 s: hybrid control feeds that
+    velocity forward, in {H} axes (here {H} is turned 90 deg about z: base x is -y in {H});
+    below the 2 mm/s deadband nothing is fed (a still patient feeds no encoder noise)."""
+    tf = ToothFrame(ToothConfig(geometry=ring_geometry(), feedforward=True), period_s=0.002)
+    tf.pose_0t = np.eye(4)
+    tf.register((0.0, 0.0, 0.0), (0.0, 0.0, -1.0))
+    for k in range(100):
+        tf._track_velocity(np.array([speed * 0.002 * k, 0.0, 0.0]))
+    r_0_h = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    ff = tf.feedforward_h(r_0_h)
+    if not fed:
+        assert ff is None
+        return
+    np.testing.assert_allclose(ff, [0.0, -speed, 0.0, 0.0, 0.0, 0.0], atol=1e-9)
+    tf.forget()
+    assert tf.feedforward_h(r_0_h) is None                   # the file is out: nothing
+
+
+def test_without_hybrid_control_nothing_is_fed_forward():
+    tf = ToothFrame(ToothConfig(geometry=ring_geometry()), period_s=0.002)
+    tf.pose_0t = np.eye(4)
+    tf.register((0.0, 0.0, 0.0), (0.0, 0.0, -1.0))
+    for k in range(100):
+        tf._track_velocity(np.array([0.04 * k, 0.0, 0.0]))
+    assert tf.feedforward_h(np.eye(3)) is None
