@@ -7,7 +7,8 @@ view) shows the handpiece, the file, the tooth and the force in 3D without any l
 plug-in:
 
 ``/tf`` (``foxglove.FrameTransforms``, every tick)
-    The tree ``base`` -> ``flange`` -> ``file_tip`` and ``base`` -> ``tooth``. One message per
+    The tree ``base`` -> ``flange`` -> ``file_tip``, ``base`` -> ``tooth`` (the simulator's
+    phantom) and ``base`` -> ``tooth_tracked`` (the patient tracker's). One message per
     tick holds all of the tick's ``foxglove.FrameTransform`` entries: one MCAP record instead
     of one per frame, which is what the writer thread pays for (see docs/recordings.md).
     Without the tool geometry (``tool_6_h``) the flange cannot be placed from the row alone
@@ -66,6 +67,8 @@ TF_TOPIC = "/tf"
 SCENE_TOPIC = "/scene"
 
 BASE, FLANGE, FILE_TIP, TOOTH = "base", "flange", "file_tip", "tooth"
+#: the tooth as the patient tracker measures it (``tooth_pose``), beside the simulator's truth
+TRACKED_TOOTH = "tooth_tracked"
 
 #: A caller's extra frames: row -> (parent frame, child frame, 4x4 transform in mm).
 FramesFn = Callable[[dict[str, Any]], Iterable[tuple[str, str, Any]]]
@@ -489,6 +492,10 @@ class FoxgloveView:
                 q_tooth = quat_from_euler_xyz_deg(tooth[3], tooth[4], tooth[5])
                 self._tooth_q = (list(tooth[3:]), q_tooth)     # one atomic store
             out[TOOTH] = self._tf(ts, BASE, TOOTH, tooth[:3], q_tooth)
+        tracked = _pose6(row.get("tooth_pose"))
+        if tracked is not None:
+            out[TRACKED_TOOTH] = self._tf(ts, BASE, TRACKED_TOOTH, tracked[:3],
+                                          quat_from_euler_xyz_deg(*tracked[3:]))
         if self.frames is not None:
             for parent, child, m in self.frames(row):
                 q, p = self._transform(m, "frames")

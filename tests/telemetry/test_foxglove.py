@@ -302,6 +302,22 @@ def test_no_pose_no_transform():
                                     phantom_pose=None), START_NS) is None
 
 
+def test_the_tracked_tooth_is_a_frame_of_its_own():
+    """A tooth 0.1 m ahead on x and turned 90 deg about z (mobile XYZ): translation in m,
+    rotation the unit quaternion (0, 0, sin 45, cos 45)."""
+    msg = FoxgloveView().transforms(ramp_row(0, phantom_pose=None,
+                                             tooth_pose=[100.0, 0.0, 50.0, 0.0, 0.0, 90.0]),
+                                    START_NS)
+    tf = {t["child_frame_id"]: t for t in msg["transforms"]}
+    assert "tooth" not in tf                                  # no simulator truth here
+    t = tf["tooth_tracked"]
+    assert t["parent_frame_id"] == "base"
+    assert t["translation"] == {"x": 0.1, "y": 0.0, "z": 0.05}
+    r = t["rotation"]
+    assert (r["x"], r["y"]) == (0.0, 0.0)
+    assert r["z"] == pytest.approx(math.sqrt(0.5)) and r["w"] == pytest.approx(math.sqrt(0.5))
+
+
 def test_bad_view_parameters_are_refused():
     with pytest.raises(ConfigError, match="tool_6_h"):
         FoxgloveView(tool_6_h=[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]])
