@@ -77,6 +77,8 @@ class Truth:
     def __call__(self) -> dict:
         w = self.world
         o, t0 = w.canal_axis_0()
+        if hasattr(w.motion, "rotation_at"):          # a turning patient: its pose now
+            self._phantom_euler = euler_xyz_deg(w.phantom_rotation.tolist())
         tip = w.tip_0
         depth = sum((tip[i] - o[i]) * t0[i] for i in range(3))
         return {

@@ -50,16 +50,40 @@ HALF_OPEN_STOP_S = 2.0
 
 class Jerk:
     """The phantom's motion with a jerk added from ``t0``: ``mm`` along the unit vector
-    ``direction`` (base frame) at ``mm_s``, then held."""
+    ``direction`` (base frame) at ``mm_s``, then held; with ``deg``, the patient also turns
+    by ``deg`` about the unit ``axis`` through ``centre_mm`` (base frame: the jaw's hinge,
+    say), in step with the translation (a jerk of ``mm`` = 0 turns at ``deg_s``)."""
 
     def __init__(self, base, t0: float, direction=(1.0, 0.0, 0.0), mm: float = 5.0,
-                 mm_s: float = 100.0) -> None:
+                 mm_s: float = 100.0, deg: float = 0.0, axis=(1.0, 0.0, 0.0),
+                 centre_mm=(0.0, 0.0, 0.0), deg_s: float = 100.0) -> None:
         self.base, self.t0, self.d, self.mm, self.v = base, t0, tuple(direction), mm, mm_s
+        self.deg, self.centre = deg, tuple(float(x) for x in centre_mm)
+        n = math.sqrt(sum(float(x) ** 2 for x in axis))
+        self.axis = tuple(float(x) / n for x in axis)
+        self.duration_s = mm / mm_s if mm > 0 else (abs(deg) / deg_s if deg else 0.0)
+        if deg:
+            self.rotation_at = self._rotation_at
+
+    def _progress(self, t: float) -> float:
+        if self.duration_s <= 0.0:
+            return 1.0 if t >= self.t0 else 0.0
+        return min(max((t - self.t0) / self.duration_s, 0.0), 1.0)
 
     def offset_mm(self, t: float):
         b = self.base.offset_mm(t)
-        s = min(max(t - self.t0, 0.0) * self.v, self.mm)
+        s = self.mm * self._progress(t)
         return (b[0] + s * self.d[0], b[1] + s * self.d[1], b[2] + s * self.d[2])
+
+    def _rotation_at(self, t: float):
+        """(R, centre): the turn so far (Rodrigues' formula about ``axis``)."""
+        th = math.radians(self.deg * self._progress(t))
+        c, s, (x, y, z) = math.cos(th), math.sin(th), self.axis
+        k = 1.0 - c
+        R = ((c + x * x * k, x * y * k - z * s, x * z * k + y * s),
+             (y * x * k + z * s, c + y * y * k, y * z * k - x * s),
+             (z * x * k - y * s, z * y * k + x * s, c + z * z * k))
+        return R, self.centre
 
 
 class _Wrapped:

@@ -2,7 +2,7 @@
 
 :class:`StringModel` computes what the six draw-wire encoders read: the pose of the tooth
 clamp {T} in the handpiece mount {M} from the World (the flange pose ``0T_6 = kin.fk(q)``
-and the phantom's pose: rotation of ``world.phantom_pose``, origin
+and the phantom's pose: rotation ``world.phantom_rotation``, origin
 ``world.phantom_origin_0()``, which includes patient motion and the platform), composed with
 the tracker's own frames (``mount_in_flange`` = 6T_M, ``tooth_in_phantom`` = PT_T)::
 
@@ -94,7 +94,7 @@ class StringModel:
         w = self.world
         t0m = w.kin.fk(w.arm.q) @ self.p.mount_in_flange
         t0p = np.eye(4)
-        t0p[:3, :3] = w.phantom_pose[:3, :3]
+        t0p[:3, :3] = w.phantom_rotation
         t0p[:3, 3] = w.phantom_origin_0()
         return np.linalg.inv(t0m) @ t0p @ self.p.tooth_in_phantom
 

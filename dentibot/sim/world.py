@@ -110,6 +110,7 @@ class World:
             self.phantom_pose = np.asarray(cfg.phantom_pose, dtype=float).copy()
         self._RP = self.phantom_pose[:3, :3].tolist()
         self._pP = tuple(self.phantom_pose[:3, 3].tolist())
+        self._RP0, self._pP0 = self._RP, self._pP     # before any rotation of the patient
         self._sense()
 
     # ------------------------------------------------------------------ geometry
@@ -164,12 +165,31 @@ class World:
                                            self.interaction.depth_mm)
             self.interaction = Interaction()
 
+    @property
+    def phantom_rotation(self) -> np.ndarray:
+        """0R_P now (3x3): the phantom's orientation, turned by the patient's motion."""
+        return np.array(self._RP)
+
+    def _rotate_patient(self, t: float) -> None:
+        """A motion that turns the patient (``rotation_at(t)`` -> (R 3x3, centre mm in {0}))
+        turns the phantom about the centre: 0R_P = R 0R_P0, and its origin
+        c + R (p0 - c); the translation (``offset_mm``) comes on top."""
+        R, c = self.motion.rotation_at(t)
+        r0 = self._RP0
+        self._RP = [[sum(R[i][k] * r0[k][j] for k in range(3)) for j in range(3)]
+                    for i in range(3)]
+        d = [self._pP0[k] - c[k] for k in range(3)]
+        self._pP = tuple(c[i] + R[i][0] * d[0] + R[i][1] * d[1] + R[i][2] * d[2]
+                         for i in range(3))
+
     # ------------------------------------------------------------------ stepping
     def step(self) -> None:
         """Advance the world by exactly one period ``ts``."""
         ts = self.ts
         self.t = t = (self.steps + 1) * ts
         self.steps += 1
+        if hasattr(self.motion, "rotation_at"):
+            self._rotate_patient(t)
         arm = self.arm
         arm.step(t, ts)
         if arm.moving:

@@ -41,3 +41,27 @@ def test_head_motion_is_smooth_small_and_seeded():
     # smooth: max speed bounded by sum of amplitude * omega (<= 4 * 0.71 * 2 pi 0.5 mm/s)
     v = np.diff(xa, axis=0) / 0.1
     assert np.abs(v).max() < 4 * math.sqrt(0.5) * 2 * math.pi * 0.5
+
+
+def test_a_turning_jerk_turns_the_phantom_about_its_centre():
+    """5 deg about base x through a hinge 80 mm below the orifice: the canal's axis turns by
+    5 deg about x and the orifice swings on an 80 mm radius (Rodrigues, checked against
+    scipy's rotation)."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from dentibot.sim import World, WorldConfig
+    from dentibot.sim.faults import Jerk
+
+    w = World(WorldConfig(seed=1))
+    o0, a0 = (np.array(v) for v in w.canal_axis_0())
+    centre = o0 - np.array([0.0, 0.0, 80.0])
+    w.motion = Jerk(w.motion, w.t, mm=0.0, deg=5.0, axis=(1.0, 0.0, 0.0), centre_mm=centre,
+                    deg_s=50.0)
+    for _ in range(100):                                     # 0.2 s: the turn is over
+        w.step()
+    R = Rotation.from_euler("x", 5.0, degrees=True).as_matrix()
+    o, a = (np.array(v) for v in w.canal_axis_0())
+    np.testing.assert_allclose(a, R @ a0, atol=1e-12)
+    np.testing.assert_allclose(o, centre + R @ (o0 - centre), atol=1e-9)
+    np.testing.assert_allclose(w.phantom_rotation, R @ w.phantom_pose[:3, :3], atol=1e-12)
