@@ -19,15 +19,17 @@ SHORT = "name: t\n{patient}steps:\n  - align: {{duration_s: 0.3}}\n  - drill: {{
 
 @pytest.mark.slow
 async def test_a_tracked_protocol_measures_depth_in_the_tooth(tmp_path):
-    p = parse_protocol(SHORT.format(patient="patient: {tracker: true}\n"))
+    p = parse_protocol(SHORT.format(patient="patient: {tracker: true}\n"
+                                            "phantom: {working_length_mm: 8}\n"))
     runner = ProtocolRunner(p, recording=tmp_path / "t.mcap")
     result = await runner.run()
     assert result.summary.status == "ok"
-    assert result.summary.depth_reached_mm == pytest.approx(16.0, abs=0.05)
+    assert result.summary.depth_reached_mm == pytest.approx(8.0, abs=0.05)
     rec = read_recording(tmp_path / "t.mcap")
     assert rec.metadata["depth_frame"] == "tooth"
     true = [r["true_depth_mm"] for r in rec.rows if r["true_depth_mm"] is not None]
-    assert max(true) <= 16.0 + 0.2                       # the working length, in the tooth
+    assert max(true) <= 8.0 + 0.2                        # the working length, in the tooth
+    assert all(r["tooth_pose"] is not None for r in rec.rows)
 
 
 async def test_without_a_tracker_the_run_says_the_working_length_is_unprotected(capsys):

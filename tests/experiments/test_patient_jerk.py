@@ -14,7 +14,7 @@ from dentibot.control.feedrate import FILE_STRENGTH_MNM
 
 @pytest.mark.slow
 def test_patient_jerk_json_gives_both_modes_side_by_side(capsys):
-    code = main(["experiment", "patient-jerk", "--json", "--quiet", "--workers", "1"])
+    code = main(["experiment", "patient-jerk", "--json", "--quiet", "--workers", "3"])
     d = json.loads(capsys.readouterr().out)
     force, tracked, hybrid = (d["modes"][m] for m in ("force", "tracked", "hybrid"))
     # base-frame depth misses the tooth's 3 mm travel along the canal; the tooth frame not
