@@ -21,7 +21,7 @@ import structlog
 
 from dentibot.app.procedure import Procedure
 from dentibot.app.steps import Aborted, StepExecutor
-from dentibot.app.tracking import sim_tracker, tracked_config
+from dentibot.app.tracking import sim_tracking, tracked_config
 from dentibot.errors import ConfigError
 from dentibot.io.devices import DevicesConfig, open_devices
 from dentibot.protocol.loader import ProtocolFileError
@@ -181,8 +181,7 @@ class ProtocolRunner:
         if devices is None:
             self.procedure = Procedure.simulated(
                 world_config(protocol), runtime_config(protocol), calibrated=not calibrate,
-                sink=self._row, event_sink=self._event, tracker=sim_tracker(protocol),
-                hybrid=protocol.patient.tracking == "hybrid")
+                sink=self._row, event_sink=self._event, **sim_tracking(protocol))
         else:
             self._cfg = tracked_config(protocol, runtime_config(protocol), devices)
         if devices is not None and not calibrate:

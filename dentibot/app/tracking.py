@@ -39,9 +39,11 @@ def tooth_config_from_devices(t: TrackerConfig, feedforward: bool = False) -> To
                        sigma_mm=t.resolution_mm, feedforward=feedforward)
 
 
-def sim_tracker(p: Protocol) -> TrackerSimParams | None:
-    """The simulated tracker a protocol asks for on the built-in simulator (None: none)."""
-    return TrackerSimParams() if p.patient.tracker else None
+def sim_tracking(p: Protocol) -> dict:
+    """What a protocol asks of the built-in simulator's tracker, as the keyword arguments of
+    :meth:`~dentibot.app.procedure.Procedure.simulated` (``tracker``, ``hybrid``)."""
+    return {"tracker": TrackerSimParams() if p.patient.tracker else None,
+            "hybrid": p.patient.tracking == "hybrid"}
 
 
 def tracked_config(p: Protocol, cfg: RuntimeConfig, devices: DevicesConfig) -> RuntimeConfig:

@@ -61,6 +61,12 @@ class MotorView:
         self.position_deg = est.motor_pos_deg
 
 
+def depth_along(tip, depth_ref) -> float:
+    """The tip's depth (mm) along ``depth_ref`` = (orifice point, unit canal axis), {0}."""
+    o, a = depth_ref
+    return (tip[0] - o[0]) * a[0] + (tip[1] - o[1]) * a[1] + (tip[2] - o[2]) * a[2]
+
+
 def estimate(q: np.ndarray, raw: np.ndarray, m, chain, r_0_6: np.ndarray, kin, gravity, to_h,
              handpiece, depth_ref) -> Estimate:
     """Step 2 of the tick: the external wrench at the reference point in {H} (zero until a
@@ -70,9 +76,6 @@ def estimate(q: np.ndarray, raw: np.ndarray, m, chain, r_0_6: np.ndarray, kin, g
     tau = file_torque_estimate_mnm(m.current_a, m.velocity_rpm, handpiece.efficiency,
                                    handpiece.friction_current_a)
     tip, axis = kin.tool_tip_axis(chain[1])
-    depth = None
-    if depth_ref is not None:
-        o, a = depth_ref
-        depth = (tip[0] - o[0]) * a[0] + (tip[1] - o[1]) * a[1] + (tip[2] - o[2]) * a[2]
+    depth = None if depth_ref is None else depth_along(tip, depth_ref)
     return Estimate(q, raw, wrench_h, float(np.linalg.norm(wrench_h)), tau,
                     m.velocity_rpm, m.current_a, m.position_deg, tip, axis, depth)

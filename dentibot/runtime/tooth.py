@@ -32,6 +32,7 @@ from dentibot.control.strings import (
     forward,
     track,
 )
+from dentibot.runtime.estimate import depth_along
 from dentibot.runtime.finding import Finding
 
 
@@ -114,12 +115,9 @@ class ToothFrame:
         if finding is not None:
             return Finding(finding.kind, f"{finding.detail}: the depth in the tooth's frame "
                                          "is lost with the file in the canal")
-        ref = self.reference_0()
-        ctx.depth_ref = ref
+        ctx.depth_ref = ref = self.reference_0()
         self._track_velocity(np.array(ref[0]))
-        tip = est.tip_0
-        o, a = ref
-        est.depth_mm = sum((tip[i] - o[i]) * a[i] for i in range(3))
+        est.depth_mm = depth_along(est.tip_0, ref)
         return None
 
     def _track_velocity(self, o: np.ndarray) -> None:

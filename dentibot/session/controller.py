@@ -30,7 +30,7 @@ import structlog
 from dentibot.app.procedure import Procedure
 from dentibot.app.runner import runtime_config, world_config
 from dentibot.app.steps import StepExecutor, align_plan
-from dentibot.app.tracking import sim_tracker, tracked_config
+from dentibot.app.tracking import sim_tracking, tracked_config
 from dentibot.errors import DentibotError
 from dentibot.io.devices import DevicesConfig, load_devices_config, open_devices
 from dentibot.protocol.schema import Protocol
@@ -520,7 +520,7 @@ class SessionController:
         if self.devices_cfg is None:
             proc = Procedure.simulated(
                 world_config(p), runtime_config(p), calibrated=self.opt.calibrated,
-                tracker=sim_tracker(p), hybrid=p.patient.tracking == "hybrid",
+                **sim_tracking(p),
                 time=SIM_TIME[self.opt.clock], drive=False, sink=self._row,
                 event_sink=self._event)
         else:
