@@ -26,6 +26,7 @@ from dentibot.errors import ConfigError
 from dentibot.io.devices import DevicesConfig, open_devices
 from dentibot.protocol.loader import ProtocolFileError
 from dentibot.protocol.schema import LIMIT_SHARE_OF_STRENGTH, Protocol
+from dentibot.control.filebeam import FileBeam
 from dentibot.runtime.config import RuntimeConfig, Thresholds, ToolGeometry, TreatmentPlan
 from dentibot.runtime.control_task import Runtime
 from dentibot.runtime.tool import tool_matrix
@@ -84,7 +85,8 @@ def runtime_config(p: Protocol) -> RuntimeConfig:
                               axial_force_limit_n=lim.axial_force_limit_n,
                               stale_periods=lim.stale_periods.model_dump()),
         plan=TreatmentPlan(working_length_mm=p.phantom.working_length_mm,
-                           orifice_gap_mm=p.phantom.orifice_gap_mm))
+                           orifice_gap_mm=p.phantom.orifice_gap_mm),
+        file=FileBeam(size=p.file.size, taper=p.file.taper, length_mm=float(p.file.length_mm)))
 
 
 def recording_path(p: Protocol, override: str | Path | None = None) -> Path | None:

@@ -56,6 +56,8 @@ def plan_config(world: World, config: RuntimeConfig | None = None) -> RuntimeCon
         orifice_gap_mm=world.config.orifice_gap_mm))
     if cfg.tool == ToolGeometry():
         cfg = dataclasses.replace(cfg, tool=tool_geometry_of(world))
+    if config is None:
+        cfg = dataclasses.replace(cfg, file=world.file.beam)
     return cfg
 
 

@@ -15,6 +15,7 @@ from collections.abc import Callable
 
 from dentibot.app.procedure import RETRACT_TIMEOUT_S, Procedure
 from dentibot.control.admittance import EXPERIMENT_1
+from dentibot.control.canal_axis import AxisServoParams
 from dentibot.control.feedrate import FeedrateParams
 from dentibot.runtime.config import TreatmentPlan
 from dentibot.runtime.control_task import Runtime
@@ -33,7 +34,11 @@ class Aborted(Exception):
 
 
 def align_plan(plan: TreatmentPlan, spec) -> TreatmentPlan:
-    """The treatment plan for an align step (Table 6.4 when ``spec.config`` is set)."""
+    """The treatment plan for an align step (Table 6.4 when ``spec.config`` is set; those
+    configurations run the thesis's admittance alone unless ``axis_servo`` asks otherwise)."""
+    servo_on = spec.axis_servo if spec.axis_servo is not None else spec.config is None
+    plan = dataclasses.replace(
+        plan, axis_servo=(plan.axis_servo or AxisServoParams()) if servo_on else None)
     if spec.config is None:
         return dataclasses.replace(plan, align_fz_n=spec.fz_n, align_rpm=spec.rpm,
                                    align_params=None, align_feedrate=None)

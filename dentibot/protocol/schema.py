@@ -222,6 +222,10 @@ class AlignStep(Strict):
         None, description="thesis Table 6.4 configuration (experiment 1)")
     tau_d_mnm: MilliNm = Field(40.0, gt=0.0, le=200.0,
                                description="desired file torque for config C (mNm)")
+    axis_servo: bool | None = Field(
+        None, description="turn the handpiece to the canal's direction read from the file's "
+        "bending (default: on, except for the Table 6.4 configurations, which ran the "
+        "admittance alone)")
 
 
 class RoundSpec(Strict):

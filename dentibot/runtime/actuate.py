@@ -12,6 +12,7 @@ import asyncio
 import numpy as np
 import structlog
 
+from dentibot.control.canal_axis import CanalAxisServo
 from dentibot.control.tick import admittance_command
 from dentibot.states.behaviours import feed_force_n
 
@@ -63,6 +64,9 @@ async def arm_command(rt, est):
         return _ZERO6
     tooth = rt.ctx.tooth
     ff = None if tooth is None else tooth.feedforward_h(rt.r_0_6 @ rt.R_6_H)
+    turn = axis_servo_twist(rt, est)
+    if turn is not None:
+        ff = turn if ff is None else ff + turn
     cmd = admittance_command(rt.admittance, est.q_deg, est.wrench_h,
                              feed_force_n(mode, rt.ctx, rt.cfg.plan), rt.chain, ff)
     bad = rt.supervisor.check_command(cmd.qdot_deg_s, cmd.twist, rt.speed_limits)
@@ -72,6 +76,23 @@ async def arm_command(rt, est):
         return _ZERO6
     await arm.move_joints_vel(cmd.qdot_deg_s)
     return cmd.qdot_deg_s
+
+
+def axis_servo_twist(rt, est):
+    """Self-alignment's orientation loop (:mod:`dentibot.control.canal_axis`) for this tick:
+    stepped while the file tip is the reference point and the plan has the loop; its rotation
+    (a twist at the tip, {H}) or None. Built, or rebuilt, when the plan's parameters change."""
+    params = rt.cfg.plan.axis_servo
+    ctx = rt.ctx
+    if params is None or rt.mode.ref != "B":
+        if params is None:
+            ctx.axis_servo = None
+        return None
+    servo = ctx.axis_servo
+    if servo is None or servo.p is not params:
+        servo = ctx.axis_servo = CanalAxisServo(rt.cfg.file, params, rt.cfg.period_s)
+    servo.step(est.depth_mm, est.wrench_h)
+    return servo.twist()
 
 
 async def recover_all(motor, arm, aux) -> str | None:

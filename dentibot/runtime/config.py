@@ -11,7 +11,9 @@ import math
 from dataclasses import dataclass, field
 
 from dentibot.control.admittance import AdmittanceParams
+from dentibot.control.canal_axis import AxisServoParams
 from dentibot.control.feedrate import FILE_STRENGTH_MNM, FeedrateParams, file_torque_from_current
+from dentibot.control.filebeam import FileBeam
 from dentibot.errors import ConfigError
 from dentibot.protocol.schema import StalePeriods
 from dentibot.states.strategies import StrategyParams
@@ -141,6 +143,9 @@ class TreatmentPlan:
     # Distance (mm) from the file tip to the canal orifice along the file when alignment or
     # drilling starts (the operator dragged the tip there): depth = -gap at that moment.
     orifice_gap_mm: float = 0.0
+    # Self-alignment's orientation loop (control.canal_axis): the handpiece turns to the
+    # canal's direction read from the file's bending. None: the thesis's admittance alone.
+    axis_servo: AxisServoParams | None = field(default_factory=AxisServoParams)
 
     def __post_init__(self) -> None:
         _check("treatment.working_length_mm", self.working_length_mm, 1.0, 30.0, "mm")
@@ -159,6 +164,8 @@ class RuntimeConfig:
     handpiece: HandpieceConfig = field(default_factory=HandpieceConfig)
     thresholds: Thresholds = field(default_factory=Thresholds)
     plan: TreatmentPlan = field(default_factory=TreatmentPlan)
+    #: the file in the handpiece (its bending model reads the canal's direction)
+    file: FileBeam = field(default_factory=FileBeam)
     tcp_points: int = 4                # thesis 3.4: four-point TCP (more when available)
     #: the patient tracker's geometry: depth in the tooth's frame (None: the base frame)
     tooth: ToothConfig | None = None

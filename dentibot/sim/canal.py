@@ -57,8 +57,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dentibot.control.filebeam import WORKING_PART_MM
 from dentibot.errors import ConfigError
-from dentibot.sim.nitifile import WORKING_PART_MM, NiTiFile
+from dentibot.sim.nitifile import NiTiFile
 
 
 @dataclass(frozen=True)
@@ -198,6 +199,9 @@ class Interaction:
     depth_mm: float = -1.0          # tip depth along the canal (arc length), < 0 outside
     f_lat: tuple = (0.0, 0.0, 0.0)  # lateral force on the file, {P}
     contact_from_tip_mm: float = 0.0
+    # sum over the lateral loads of (distance from the tip along the file, mm) x (load, N),
+    # {P}: the moment of the lateral loads about the tip is -axis x m_lat (N*mm)
+    m_lat: tuple = (0.0, 0.0, 0.0)
     f_axial_n: float = 0.0          # pushes the file out, along -file axis
     resist_mnm: float = 0.0         # torque the canal resists forward rotation with (>= 0)
     engagement_mm2: float = 0.0
@@ -362,32 +366,15 @@ class Canal:
         area = float(overlap.sum()) * ds
         out.engagement_mm2 = area
         i1 = min(i_tip, self.n_straight)
+        nsum = 0.0
         if i1 > i0:
-            # offset of the (straight) file from the centreline, linear in depth, as a complex
-            # number u + i v (one numpy call per operation instead of two)
-            ez = self._sz[i0:i1] * complex(au, av) + complex(eu - s_tip * au, ev - s_tip * av)
-            en = np.abs(ez) + 1e-12
-            gg = g[: i1 - i0]
-            x = gg + en
-            net = np.minimum(np.maximum(x, 0.0), en + en)   # far minus near penetration
-            tot = float(net.sum())
-            if tot > 1e-12:
-                fz = -complex(np.dot(net / en, ez))
-                s_c = float(np.dot(net, self.s[i0:i1])) / tot
-                k_wall = p.wall_n_mm_per_mm * ds * float(np.count_nonzero(net))
-                from_tip = s_tip - s_c
-                k_file = f.lateral_stiffness_n_mm(from_tip)
-                scale = p.wall_n_mm_per_mm * ds * k_file / (k_wall + k_file)
-                fu, fv = fz.real * scale, fz.imag * scale
-                out.f_lat = (fu * u[0] + fv * v[0], fu * u[1] + fv * v[1], fu * u[2] + fv * v[2])
-                out.contact_from_tip_mm = from_tip
-        flat = math.sqrt(out.f_lat[0] ** 2 + out.f_lat[1] ** 2 + out.f_lat[2] ** 2)
+            nsum = self._lateral(out, f, s_tip, au, av, eu, ev, g[: i1 - i0], i0, i1)
         deb = self.debris_mm3
         fin = max(feed, 0.0)
         self._tau_cut = tau_cut = (p.torque_mnm_per_mm2 + p.torque_mnm_s_per_mm3 * fin) * area
         self._tau_edges = tau_cut
         out.resist_mnm = (tau_cut + p.torque_mnm_per_mm3 * deb
-                          + p.friction_mu * flat * f.diameter_mm(out.contact_from_tip_mm) / 2.0)
+                          + p.friction_mu * nsum * f.diameter_mm(out.contact_from_tip_mm) / 2.0)
         if p.rub_mnm_per_mm:
             touching = np.count_nonzero(g > -p.rub_clearance_mm)
             rub = p.rub_mnm_per_mm * ds * touching
@@ -408,6 +395,94 @@ class Canal:
         self._win = (i0, i_tip, overlap)
         return out
 
+    def _lateral(self, out: Interaction, f: NiTiFile, s_tip: float, au: float, av: float,
+                 eu: float, ev: float, g: np.ndarray, i0: int, i1: int) -> float:
+        """The walls' lateral loads on the straight part of the file (slices ``i0:i1``), set
+        in ``out.f_lat``, ``out.m_lat`` and ``out.contact_from_tip_mm``; returns the sum of
+        their magnitudes (N, the normal load the wall friction acts with).
+
+        The undeformed file is a straight line from the handpiece's clamp: its offset ``e``
+        from the centreline is linear in depth. Per slice the far-side penetration minus the
+        near-side one (``g`` is the file's radius minus the lumen's) would push a rigid file
+        back with the wall stiffness. The file touches the walls in two places at most, at the
+        ends of its part in the canal (the orifice and the tip: a straight line in a tapered
+        lumen, bent by end loads, meets the walls there first), each with the wall stiffness
+        of the slices that penetrate in its half. The file is a tapered cantilever clamped at the shank
+        (:meth:`NiTiFile.compliance_mm_n`): the loads ``lambda_j`` (along the inward normal
+        ``-n_j``) bend it, and where it touches the wall's penetration is what the bending
+        leaves, ``lambda_j / k_j = pen_j - sum_k c(j, k) (n_j . n_k) lambda_k``, with
+        ``lambda >= 0`` and no penetration where there is no load (a two-contact linear
+        complementarity problem, solved by active sets: a contact the bending presses into
+        the wall joins, one that would pull leaves).
+
+        A file crossing the canal's axis (a handpiece tilted from a tilted canal) is pushed one
+        way near the orifice and the other way at the tip: a couple, whose moment about the tip
+        turns the handpiece towards the canal's direction under admittance control (thesis
+        4.4), and which a single resultant force would lose."""
+        p = self.p
+        s = self.s[i0:i1]
+        ez = self._sz[i0:i1] * complex(au, av) + complex(eu - s_tip * au, ev - s_tip * av)
+        en = np.abs(ez)
+        x = g + en                                       # far-side penetration (< 0: a gap)
+        net = np.minimum(x, en + en)                     # far minus near penetration
+        kd = p.wall_n_mm_per_mm * p.slice_mm
+        n = i1 - i0
+        m = n // 2
+        pts = []                                         # (e, pen0, k, lever, gap offset g)
+        for lo, hi, j in ((0, m, 0), (m, n, n - 1)):
+            if hi <= lo:
+                continue
+            k = kd * max(1, int(np.count_nonzero(net[lo:hi] > 0.0)))
+            pts.append((complex(ez[j]), float(net[j]), k, s_tip - float(s[j]), float(g[j])))
+        npt = len(pts)
+        c = [[f.compliance_mm_n(pts[i][3], pts[j][3]) for j in range(npt)] for i in range(npt)]
+        normals = [e / abs(e) if abs(e) > 1e-9 else 0j for e, *_ in pts]
+        active = [pts[i][1] > 0.0 and normals[i] != 0j for i in range(npt)]
+        lam = [0.0] * npt
+        for _ in range(4):
+            idx = [i for i in range(npt) if active[i]]
+            lam = [0.0] * npt
+            if len(idx) == 1:
+                i = idx[0]
+                lam[i] = pts[i][1] / (1.0 / pts[i][2] + c[i][i])
+            elif len(idx) == 2:
+                i, j = idx
+                cij = c[i][j] * (normals[i] * normals[j].conjugate()).real
+                a00, a11 = 1.0 / pts[i][2] + c[i][i], 1.0 / pts[j][2] + c[j][j]
+                det = a00 * a11 - cij * cij
+                lam[i] = (a11 * pts[i][1] - cij * pts[j][1]) / det
+                lam[j] = (a00 * pts[j][1] - cij * pts[i][1]) / det
+            neg = [i for i in idx if lam[i] < 0.0]
+            if neg:                                      # a contact that would pull leaves
+                active[min(neg, key=lambda i: lam[i])] = False
+                continue
+            joined = False
+            for i in range(npt):
+                if active[i]:
+                    continue
+                w = sum((-lam[k] * normals[k] * c[i][k] for k in idx), 0j)
+                e = pts[i][0] + w
+                if abs(e) + pts[i][4] > 0.0 and abs(e) > 1e-9:   # bent into the wall
+                    normals[i] = e / abs(e)
+                    pen = (pts[i][0] * normals[i].conjugate()).real + pts[i][4]
+                    pts[i] = (pts[i][0], pen, *pts[i][2:])
+                    active[i] = True
+                    joined = True
+            if not joined:
+                break
+        fz = sum((-lam[i] * normals[i] for i in range(npt)), 0j)
+        gz = sum((-lam[i] * normals[i] * pts[i][3] for i in range(npt)), 0j)
+        total = sum(lam)
+        if total <= 0.0:
+            return 0.0
+        u, v = self.u, self.v
+        out.f_lat = (fz.real * u[0] + fz.imag * v[0], fz.real * u[1] + fz.imag * v[1],
+                     fz.real * u[2] + fz.imag * v[2])
+        out.m_lat = (gz.real * u[0] + gz.imag * v[0], gz.real * u[1] + gz.imag * v[1],
+                     gz.real * u[2] + gz.imag * v[2])
+        out.contact_from_tip_mm = sum(lam[i] * pts[i][3] for i in range(npt)) / total
+        return total
+
     def _drag_forces(self, out: Interaction, eu: float, ev: float, dt: float) -> float:
         """Canal drag (see the drag fields of :class:`CanalParams`): adds the lateral damping
         to ``out.f_lat`` and returns the axial drag (N, + pushes the file out)."""
@@ -421,8 +496,10 @@ class Canal:
             du, dv = (eu - last[0]) * c, (ev - last[1]) * c
             uu, vv = self.u, self.v
             fl = out.f_lat
-            out.f_lat = (fl[0] - du * uu[0] - dv * vv[0], fl[1] - du * uu[1] - dv * vv[1],
-                         fl[2] - du * uu[2] - dv * vv[2])
+            dl = (du * uu[0] + dv * vv[0], du * uu[1] + dv * vv[1], du * uu[2] + dv * vv[2])
+            out.f_lat = (fl[0] - dl[0], fl[1] - dl[1], fl[2] - dl[2])
+            d, ml = out.contact_from_tip_mm, out.m_lat    # the damping acts at the contact
+            out.m_lat = (ml[0] - d * dl[0], ml[1] - d * dl[1], ml[2] - d * dl[2])
         return fa
 
     def cut(self, revolutions: float) -> float:

@@ -1,7 +1,7 @@
 """NiTi endodontic file: geometry, lateral stiffness, torsional strength, cyclic fatigue.
 
-Geometry (ISO 3630-1 / thesis ch. 5): tip diameter = size/100 mm, diameter grows by ``taper``
-mm per mm from the tip over the 16 mm working part, then stays constant (shank).
+Geometry and bending: :class:`dentibot.control.filebeam.FileBeam` (the one model the
+controller uses too).
 """
 
 from __future__ import annotations
@@ -10,18 +10,12 @@ import math
 from dataclasses import dataclass
 from functools import cached_property
 
-import numpy as np
-
 from dentibot.control.feedrate import FILE_STRENGTH_MNM
+from dentibot.control.filebeam import NITI_E_MPA, FileBeam
 from dentibot.errors import ConfigError
 
-#: Working (fluted) part length (mm), ISO 3630-1 / thesis chapter 5.
-WORKING_PART_MM = 16.0
 #: Total lengths available (mm), thesis chapter 5.
 FILE_LENGTHS_MM = (21.0, 25.0, 28.0, 31.0)
-# Young's modulus of austenitic NiTi: 40-75 GPa (Thompson 2000, Int Endod J 33:297); 50 GPa
-# is the value usually taken for superelastic files. In N/mm^2 (MPa).
-NITI_E_MPA = 50_000.0
 # assumption: strain-life (Coffin-Manson form) for NiTi files, eps_a = C * N_f**-b with
 # C = 1.0, b = 0.5: about 330 cycles at 5.5 % surface strain (a #25/.06 file 5 mm from the tip in
 # a 5 mm radius curve), the order of the cycles to failure reported for such curves
@@ -59,41 +53,26 @@ class NiTiFile:
         if self.length_mm not in FILE_LENGTHS_MM:
             raise ConfigError("file.length_mm", self.length_mm, f"one of {FILE_LENGTHS_MM}")
 
+    @cached_property
+    def beam(self) -> FileBeam:
+        """The file as a tapered cantilever (geometry and lateral compliance)."""
+        return FileBeam(self.size, self.taper, self.length_mm, self.youngs_modulus_mpa)
+
     @property
     def tip_diameter_mm(self) -> float:
         return self.size / 100.0
 
     def diameter_mm(self, distance_from_tip_mm: float) -> float:
-        """Diameter (mm) at a distance from the tip (0 outside the file's length)."""
-        x = min(max(distance_from_tip_mm, 0.0), WORKING_PART_MM)
-        return self.tip_diameter_mm + self.taper * x
+        """Diameter (mm) at a distance from the tip (:meth:`FileBeam.diameter_mm`)."""
+        return self.beam.diameter_mm(distance_from_tip_mm)
 
-    @cached_property
-    def _compliance_table(self) -> tuple[float, list[float]]:
-        """Lateral compliance (mm/N) at contact points every 0.25 mm from the tip."""
-        step = 0.25
-        L = self.length_mm
-        x = np.linspace(0.0, L, 401)                    # from the clamp (shank end)
-        d = np.array([self.diameter_mm(L - xi) for xi in x])
-        inv_ei = 1.0 / (self.youngs_modulus_mpa * np.pi * d**4 / 64.0)
-        table = []
-        for c in np.arange(0.0, L + step, step):
-            a = L - c
-            m = x <= a
-            y = (a - x[m]) ** 2 * inv_ei[m]
-            xm = x[m]
-            table.append(float(np.sum((y[1:] + y[:-1]) * np.diff(xm))) / 2.0
-                         if m.sum() > 1 else 1e-9)
-        return step, table
+    def compliance_mm_n(self, from_tip_1_mm: float, from_tip_2_mm: float) -> float:
+        """:meth:`FileBeam.compliance_mm_n`."""
+        return self.beam.compliance_mm_n(from_tip_1_mm, from_tip_2_mm)
 
     def lateral_stiffness_n_mm(self, contact_from_tip_mm: float) -> float:
-        """Lateral stiffness (N/mm) of the file clamped at its shank end, loaded at a point
-        ``contact_from_tip_mm`` from the tip: 1 / integral((a - x)^2 / (E I(x)) dx) over the
-        tapered beam (unit-load method; 3EI/L^3 for a uniform one). I = pi d^4 / 64 of a solid
-        round section (real flutes make it softer, so this is an upper bound)."""
-        step, table = self._compliance_table
-        i = min(max(int(contact_from_tip_mm / step + 0.5), 0), len(table) - 1)
-        return 1.0 / max(table[i], 1e-9)
+        """:meth:`FileBeam.lateral_stiffness_n_mm`."""
+        return self.beam.lateral_stiffness_n_mm(contact_from_tip_mm)
 
     @staticmethod
     def cycles_to_failure(strain: float) -> float:

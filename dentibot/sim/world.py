@@ -235,30 +235,32 @@ class World:
 
     def _sense(self) -> None:
         it = self.interaction
-        if self.fractured is None and (it.f_axial_n or it.resist_mnm or it.f_lat[0]
-                                       or it.f_lat[1] or it.f_lat[2]):
-            fp = it.f_lat
+        if self.fractured is None and (it.f_axial_n or it.resist_mnm or any(it.f_lat)
+                                       or any(it.m_lat)):
+            fp, gp = it.f_lat, it.m_lat
             r0, r1, r2 = self._RP
             fl = (r0[0] * fp[0] + r0[1] * fp[1] + r0[2] * fp[2],
                   r1[0] * fp[0] + r1[1] * fp[1] + r1[2] * fp[2],
                   r2[0] * fp[0] + r2[1] * fp[1] + r2[2] * fp[2])
+            # the lateral loads' moment arms about the tip (mm -> m for torques)
+            gl = ((r0[0] * gp[0] + r0[1] * gp[1] + r0[2] * gp[2]) * 1e-3,
+                  (r1[0] * gp[0] + r1[1] * gp[1] + r1[2] * gp[2]) * 1e-3,
+                  (r2[0] * gp[0] + r2[1] * gp[1] + r2[2] * gp[2]) * 1e-3)
             ax = self.axis_0
             tip = self.tip_0
             fa = it.f_axial_n
             o = self.sensor.origin(self._R06, self._p06)
-            # lateral force at the contact point, axial force at the tip (mm -> m for torques)
-            d = it.contact_from_tip_mm
+            # lateral loads along the file (their moment about the tip is -axis x m_lat),
+            # axial force at the tip
             rt = ((tip[0] - o[0]) * 1e-3, (tip[1] - o[1]) * 1e-3, (tip[2] - o[2]) * 1e-3)
-            d *= 1e-3
-            rc = (rt[0] - ax[0] * d, rt[1] - ax[1] * d, rt[2] - ax[2] * d)
             fax = (-fa * ax[0], -fa * ax[1], -fa * ax[2])
             f = (fl[0] + fax[0], fl[1] + fax[1], fl[2] + fax[2])
             # canal's torque on the file: opposes the motor's torque, about the file axis
             tq = -self.handpiece.torque_mnm * 1e-3
             tau = (
-                rc[1] * fl[2] - rc[2] * fl[1] + rt[1] * fax[2] - rt[2] * fax[1] + tq * ax[0],
-                rc[2] * fl[0] - rc[0] * fl[2] + rt[2] * fax[0] - rt[0] * fax[2] + tq * ax[1],
-                rc[0] * fl[1] - rc[1] * fl[0] + rt[0] * fax[1] - rt[1] * fax[0] + tq * ax[2],
+                rt[1] * f[2] - rt[2] * f[1] - (ax[1] * gl[2] - ax[2] * gl[1]) + tq * ax[0],
+                rt[2] * f[0] - rt[0] * f[2] - (ax[2] * gl[0] - ax[0] * gl[2]) + tq * ax[1],
+                rt[0] * f[1] - rt[1] * f[0] - (ax[0] * gl[1] - ax[1] * gl[0]) + tq * ax[2],
             )
             self.contact_force_0 = f
         else:

@@ -49,14 +49,21 @@ class Context:
     #: the tracked tooth (a runtime ToothFrame) when a patient tracker is configured: the
     #: depth reference is then also kept in the tooth's frame and follows the patient
     tooth: Any = None
+    #: self-alignment's orientation loop (control.canal_axis.CanalAxisServo), when the plan
+    #: has one and the tip is the reference point
+    axis_servo: Any = None
 
 
 def feed_force_n(mode, ctx: Context, plan) -> float:
-    """The desired insertion force fz of f_d (4.4) that ``mode.feed`` asks for (N)."""
-    if mode.feed == "strategy":
-        return ctx.decision.fz_n
-    if mode.feed == "align":
-        return ctx.decision.fz_n if ctx.align_pd is not None else plan.align_fz_n
+    """The desired insertion force fz of f_d (4.4) that ``mode.feed`` asks for (N). An
+    insertion force is scaled down while the file is bent through the canal's tilt
+    (:meth:`~dentibot.control.canal_axis.CanalAxisServo.feed_scale`)."""
+    if mode.feed in ("strategy", "align"):
+        fz = ctx.decision.fz_n if mode.feed == "strategy" or ctx.align_pd is not None \
+            else plan.align_fz_n
+        if fz > 0.0 and ctx.axis_servo is not None:
+            fz *= ctx.axis_servo.feed_scale()
+        return fz
     if mode.feed == "retract":
         return -plan.retract_fz_n
     return 0.0

@@ -239,7 +239,7 @@ async def test_tcp_calibration_by_pedal_presses_finds_the_true_tool_tip():
     rt, w = h.runtime, h.world
     assert rt.cfg.tool.tip_6_mm == (0, 0, 80.0)
     T0 = w.kin.fk_tool(w.arm.q)
-    point = T0[:3, 3] + np.array([0.0, 0.0, -5.0])
+    point = T0[:3, 3] + np.array([0.0, 0.0, 5.0])    # in the air, 7 mm above the orifice
     assert await h.command("calibrate_tcp") is None
     q = np.array(w.arm.q)
     for rx, ry in ((0, 0), (15, 0), (-15, 0), (0, 15), (0, -15)):

@@ -140,3 +140,50 @@ def test_rotation_in_a_curve_fatigues_the_file_by_miners_rule():
     n_f = (1.0 / (d / (2 * 5.0))) ** 2          # eps = C N^-b, C = 1, b = 0.5
     cycles = (w.fractured.t - t0) * 200.0 / 60.0
     assert cycles == pytest.approx(n_f, rel=0.02)
+
+
+def _interact(tilt_deg: float, offset_mm: float, depth_mm: float = 3.0):
+    """A straight #25/.06 file 3 mm deep in a straight canal, turned by ``tilt_deg`` about
+    {P}'s y axis with its tip ``offset_mm`` off the centreline along x."""
+    from dentibot.sim.canal import Canal
+
+    canal = Canal(CanalParams())
+    a = np.radians(tilt_deg)
+    canal._entered, canal._last_depth = True, depth_mm
+    return canal.interact((offset_mm, 0.0, depth_mm), (np.sin(a), 0.0, np.cos(a)),
+                          NiTiFile(), 0.002)
+
+
+def test_a_file_tilted_in_the_canal_is_turned_by_a_couple_towards_its_axis():
+    """Tip on the centreline, file turned 10 deg: its line leaves the lumen near the orifice
+    (0.53 mm off at 3 mm up) and the bent file presses the far wall at the tip. The walls push
+    the orifice end one way and the tip the other: the moment about the tip, -axis x m_lat,
+    turns the file's axis back towards the canal's (about -y), and its arm is longer than the
+    resultant alone would give (a couple)."""
+    it = _interact(10.0, 0.0)
+    f, g = np.asarray(it.f_lat), np.asarray(it.m_lat)
+    a = np.radians(10.0)
+    axis = np.array([np.sin(a), 0.0, np.cos(a)])
+    moment = -np.cross(axis, g)                  # N*mm about the tip
+    assert moment[1] < -1.0                       # more than 1 N*mm, turning z towards the axis
+    assert np.linalg.norm(g) > 3.0 * np.linalg.norm(f)   # the arm exceeds the 3 mm depth
+    # straight and centred: the file is free in its lumen (#15/.02 around a #25/.06 tip)
+    free = _interact(0.0, 0.0)
+    assert free.f_lat == (0.0, 0.0, 0.0) and free.m_lat == (0.0, 0.0, 0.0)
+
+
+def test_a_file_pushed_sideways_bends_as_a_cantilever_of_its_own_stiffness():
+    """Straight file, 0.3 mm off the centreline along its whole part in the canal: both ends
+    press the same wall, so the load is one-sided, and no more than the sum of the file's own
+    stiffnesses at the two ends times their rigid penetrations (the loads' coupling through
+    the beam and the wall in series only soften it)."""
+    it = _interact(0.0, 0.3)
+    f = np.asarray(it.f_lat)
+    assert f[0] < 0.0 and abs(f[1]) < 1e-12       # back towards the axis
+    lumen = lambda s: (0.15 + 0.02 * (16.0 - s)) / 2.0          # noqa: E731 (#15/.02, WL 16)
+    pen_tip = 0.3 + 0.125 - lumen(2.875)                        # tip slice centre 2.875 mm
+    pen_orifice = 0.3 + (0.25 + 0.06 * 2.875) / 2.0 - lumen(0.125)
+    file = NiTiFile()
+    bound = file.lateral_stiffness_n_mm(0.0) * pen_tip + \
+        file.lateral_stiffness_n_mm(2.75) * pen_orifice
+    assert 0.5 * bound < -f[0] <= bound
