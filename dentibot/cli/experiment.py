@@ -1,7 +1,11 @@
 """``dentibot experiment alignment|preclinical``: the thesis's chapter-6 experiments on the
 built-in simulator, in lock-step simulated time, with the thesis's numbers alongside.
 
-- ``alignment [--config A|B|C|all]``: experiment 1 (Table 6.4, fig 6.7-6.16);
+- ``alignment [--config A|B|C|all] [--tracking force|hybrid]``: experiment 1 (Table 6.4,
+  fig 6.7-6.16), by force alone as in the thesis or with the patient tracker and hybrid
+  control;
+- ``patient-jerk [--mm --mm-s --deg]``: the patient jerks (and turns) while the file works at
+  the working length, with and without the patient tracker;
 - ``preclinical [--strategy automated|feedrate|reversal|none|all] [--material M]``:
   experiment 2 (Table 6.5) and its ablations.
 
@@ -28,6 +32,7 @@ from dentibot.control.feedrate import FILE_STRENGTH_MNM
 from dentibot.cli.common import user_errors
 from dentibot.errors import ConfigError
 from dentibot.experiments import alignment as al
+from dentibot.experiments import patient_jerk as pj
 from dentibot.experiments import preclinical as pc
 from dentibot.experiments import results as res
 from dentibot.experiments.common import default_workers
@@ -126,7 +131,7 @@ def cmd_alignment(args: argparse.Namespace) -> int:
         result = res.alignment_experiment(
             config=args.config, speeds=args.speeds, seeds=args.seeds, seed=args.seed,
             workers=args.workers, out=args.out, no_figures=args.no_figures,
-            progress=_progress(args))
+            tracking=args.tracking, progress=_progress(args))
     except KeyboardInterrupt:
         return _abort()
     if args.json:
@@ -135,6 +140,11 @@ def cmd_alignment(args: argparse.Namespace) -> int:
         con = _console()
         for t in _alignment_tables(result.by_config):
             con.print(t)
+        if args.tracking == "hybrid":
+            con.print("tracking: hybrid (the patient tracker's tooth motion fed forward to the "
+                      "arm, the force law correcting the rest); max across the canal: "
+                      + ", ".join(f"{r.spec.config}/{r.spec.seed} "
+                                  f"{_f(r.max_lateral_mm, '{:.3f}')} mm" for r in result.runs))
         con.print(f"detachment: the tip more than {al.DETACH_START_MM} mm out of its seated "
                   f"position along the file axis, until back within {al.DETACH_END_MM} mm; "
                   "recovery counted from the peak. law: what the admittance law predicts "
@@ -179,29 +189,37 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 @user_errors
 def cmd_patient_jerk(args: argparse.Namespace) -> int:
     try:
-        result = res.patient_jerk_experiment(mm=args.mm, mm_s=args.mm_s, seed=args.seed,
-                                             workers=args.workers, progress=_progress(args))
+        result = res.patient_jerk_experiment(mm=args.mm, mm_s=args.mm_s, deg=args.deg,
+                                             seed=args.seed, workers=args.workers,
+                                             progress=_progress(args))
     except KeyboardInterrupt:
         return _abort()
     if args.json:
         print(json.dumps(result.to_dict(), indent=1))
         return 0 if result.passed else 1
+    turn = (f", turning {args.deg:g} deg about the jaw's hinge ({pj.HINGE_MM:g} mm beyond "
+            "the orifice along the canal)") if args.deg else ""
     t = Table(title=f"The tooth steps {args.mm:g} mm towards the robot along the canal at "
-                    f"{args.mm_s:g} mm/s while the file works at the working length")
-    for col in ("mode", "overshoot mm", "past WL s", "depth error mm", "fractures",
-                "peak mNm", "state after the watch"):
+                    f"{args.mm_s:g} mm/s{turn} while the file works at the working length")
+    for col in ("mode", "overshoot mm", "past WL s", "depth error mm", "axis error deg",
+                "peak axis error deg", "fractures", "peak mNm", "state after the watch"):
         t.add_column(col, justify="right")
     for m, r in result.runs.items():
         t.add_row(m, f"{r.overshoot_mm:.2f}", f"{r.past_wl_s:.2f}",
-                  _f(r.depth_error_mm, "{:.2f}"), str(r.fractures),
-                  f"{r.peak_torque_mNm:.1f}", r.final_state)
+                  _f(r.depth_error_mm, "{:.2f}"), _f(r.axis_error_deg, "{:.2f}"),
+                  _f(r.peak_axis_error_deg, "{:.2f}"), str(r.fractures),
+                  f"{r.peak_torque_mNm:.1f}", r.final_state
+                  + (f" ({r.fault_cause})" if r.fault_cause else ""))
     con = _console()
     con.print(t)
     con.print("force: depth in the robot's base frame (the thesis); tracked: depth in the "
               "tooth's frame from the patient tracker; hybrid: that, and the tooth's motion "
-              "fed forward to the arm. overshoot: the deepest true tip depth "
-              "past the working length; past WL: time more than 0.2 mm past it; depth error: "
-              "true minus measured, 0.5 s after the jerk.")
+              "(translation and turn) fed forward to the arm. overshoot: the deepest true tip "
+              "depth past the working length; past WL: time more than 0.2 mm past it; depth "
+              "error: true minus measured, 0.5 s after the jerk; axis error: the angle "
+              "between the file and the canal, 0.5 s after the jerk (peak: the largest "
+              "during the watch with the tip in the canal); -- where the run had stopped by "
+              "then (see the state).")
     con.print(_checks_table(result.checks))
     return 0 if result.passed else 1
 
@@ -393,6 +411,10 @@ def add_parser(sub) -> None:
                    help="Table 6.4 configuration (default all)")
     a.add_argument("--speeds", type=_speeds, default=al.SPEEDS_MM_S, metavar="V,V",
                    help="platform speeds of the squares in mm/s (default 3,4,5,6)")
+    a.add_argument("--tracking", choices=al.TRACKING, default="force",
+                   help="force: the file follows the patient by the admittance law alone (the "
+                        "thesis, default); hybrid: with the patient tracker, the tooth's motion "
+                        "fed forward to the arm")
     a.add_argument("--bench", action="store_true",
                    help="run A, B, C and C_K250 as the thesis's bench ran them on the "
                         "bench-fitted world and print the recordings' figures")
@@ -404,6 +426,9 @@ def add_parser(sub) -> None:
     j.add_argument("--mm", type=float, default=3.0, help="the jerk's travel (mm, default 3)")
     j.add_argument("--mm-s", type=float, default=20.0,
                    help="the jerk's speed (mm/s, default 20)")
+    j.add_argument("--deg", type=float, default=0.0,
+                   help="the patient also turns by this much (deg, default 0) in step with "
+                        "the jerk, about the jaw's hinge")
     j.add_argument("--seed", type=int, default=1, help="the simulated world's seed (default 1)")
     j.add_argument("--workers", type=_positive, default=min(3, default_workers()),
                    metavar="W", help="parallel local processes (default: up to 3, one per mode)")

@@ -34,6 +34,15 @@ insertion axis at ``v > v_c`` over ``L = 15 mm``, the tip falls behind by
 ``L (1 - v_c / v)``, then catches up at ``v_c``. Config C (fz <= 0.5 N): v_c = 3.125 mm/s,
 ripples of 0, 3.3, 5.6 and 7.2 mm at 3, 4, 5, 6 mm/s, each recovered in under 2.5 s;
 A and B (fz = 1 N): v_c = 6.25 mm/s, no ripple at these speeds.
+
+``tracking``: ``force`` (default) is the thesis's experiment, the file held by the admittance
+law alone; ``hybrid`` runs the same patient motion with the patient tracker and hybrid
+position/force control (:meth:`dentibot.runtime.tooth.ToothFrame.feedforward_h`): the tooth's
+tracked motion is fed forward to the arm and the force law corrects the rest, so the chase
+speed of eq 4.35 no longer bounds how fast the file follows. Its targets
+(:data:`HYBRID_TARGETS`, :func:`hybrid_checks`): the tip within 0.5 mm of its seated position
+across the canal axis (``max_lateral_mm``) and along it (``max_rel_mm`` z, the Z ripple), no
+detachment, at every speed.
 """
 
 from __future__ import annotations
@@ -52,6 +61,12 @@ from dentibot.protocol.schema import Protocol
 from dentibot.app.simulated import SQUARE_MM, StewartSquare
 
 CONFIGS = ("A", "B", "C")
+#: How the file follows the patient: the admittance law alone (the thesis), or hybrid control
+#: with the patient tracker (the tracked tooth's motion fed forward).
+TRACKING = ("force", "hybrid")
+#: Hybrid control's targets on experiment 1's path (mm), at every speed: the tip's largest
+#: distance from its seated position across the canal axis, and along it (either way).
+HYBRID_TARGETS = {"lateral_mm": 0.5, "z_ripple_mm": 0.5}
 #: Thesis 6.2: square speeds (mm/s) and the pause between squares (s).
 SPEEDS_MM_S = (3.0, 4.0, 5.0, 6.0)
 PAUSE_S = 10.0
@@ -129,10 +144,13 @@ class AlignmentSpec:
     pause_s: float = PAUSE_S
     patient: PatientVariation | None = None
     keep_series: bool = True
+    tracking: str = "force"
 
     def __post_init__(self) -> None:
         if self.config not in CONFIGS:
             raise ValueError(f"config {self.config!r}: one of {', '.join(CONFIGS)}")
+        if self.tracking not in TRACKING:
+            raise ValueError(f"tracking {self.tracking!r}: one of {', '.join(TRACKING)}")
 
     def square(self) -> StewartSquare:
         return StewartSquare(self.speeds_mm_s, self.pause_s, start_s=self.insertion_s)
@@ -173,11 +191,13 @@ class SpeedStats:
     max_out_mm: float
     detachments: list[Detachment]
     expected_ripple_mm: float
+    max_lateral_mm: float = float("nan")
 
     def to_dict(self) -> dict:
         return {"speed_mm_s": self.speed_mm_s, "t0_s": self.t0, "t1_s": self.t1,
                 "max_rel_mm": self.max_rel_mm, "rms_rel_mm": self.rms_rel_mm,
-                "max_out_mm": self.max_out_mm, "expected_ripple_mm": self.expected_ripple_mm,
+                "max_out_mm": self.max_out_mm, "max_lateral_mm": self.max_lateral_mm,
+                "expected_ripple_mm": self.expected_ripple_mm,
                 "detachments": [d.to_dict() for d in self.detachments]}
 
 
@@ -197,11 +217,14 @@ class AlignmentRun:
     seated_depth_mm: float
     wall_s: float
     series: dict[str, np.ndarray] | None = field(default=None, repr=False)
+    max_lateral_mm: float = float("nan")
 
     def to_dict(self) -> dict:
         return {"config": self.spec.config, "seed": self.spec.seed, "status": self.status,
+                "tracking": self.spec.tracking,
                 "reason": self.reason, "max_rel_mm": self.max_rel_mm,
                 "rms_rel_mm": self.rms_rel_mm, "max_out_mm": self.max_out_mm,
+                "max_lateral_mm": self.max_lateral_mm,
                 "peak_force_n": self.peak_force_n, "seated_depth_mm": self.seated_depth_mm,
                 "patient": None if self.spec.patient is None
                 else dataclasses.asdict(self.spec.patient),
@@ -276,6 +299,18 @@ def _window(t, rel, out, lo, hi):
             float(out[m].max()))
 
 
+def _max_in(t, x, lo, hi) -> float:
+    m = (t >= lo) & (t < hi)
+    return float(x[m].max()) if m.any() else float("nan")
+
+
+def lateral_distance(rel: np.ndarray, axis_in) -> np.ndarray:
+    """The part of the relative distance ``rel`` (n x 3, mm) across the unit ``axis_in``:
+    ``|rel - (rel . a) a|`` (mm)."""
+    a = np.asarray(axis_in, float)
+    return np.linalg.norm(rel - np.outer(rel @ a, a), axis=1)
+
+
 def square_starts(square: StewartSquare) -> list[float]:
     """Start time (s, world time) of each square of the profile."""
     per = len(SQUARE_MM) - 1
@@ -298,6 +333,7 @@ def analyse(spec: AlignmentSpec, t, tip, root, axis_in, status="ok", reason="",
                             seated_depth_mm, wall_s, series)
     rel = relative_distance(tip, root, i0)
     out = -(rel @ np.asarray(axis_in, float))
+    lat = lateral_distance(rel, axis_in)
     end = float(t[-1]) + 1e-9
     mx, rms, mo = _window(t, rel, out, starts[0], end)
     speeds = []
@@ -307,22 +343,28 @@ def analyse(spec: AlignmentSpec, t, tip, root, axis_in, status="ok", reason="",
         w_mx, w_rms, w_mo = _window(t, rel, out, lo, hi)
         m = (t >= lo) & (t < hi)
         speeds.append(SpeedStats(v, lo, hi, w_mx, w_rms, w_mo, detachments(t[m], out[m]),
-                                 expected_ripple_mm(spec.config, v)))
+                                 expected_ripple_mm(spec.config, v),
+                                 _max_in(t, lat, lo, hi)))
     m = t >= starts[0]
     return AlignmentRun(spec, status, reason, mx, rms, mo, speeds, detachments(t[m], out[m]),
-                        peak_force_n, seated_depth_mm, wall_s, series)
+                        peak_force_n, seated_depth_mm, wall_s, series,
+                        _max_in(t, lat, starts[0], end))
 
 
 # ---------------------------------------------------------------------------- the run
 def alignment_protocol(spec: AlignmentSpec) -> Protocol:
     """The protocol of one run: protocols/experiment1-config-<X>.yaml with the run's seed,
-    phantom and duration (the square itself is set on the world, see :func:`run_alignment`)."""
+    phantom and duration (the square itself is set on the world, see :func:`run_alignment`);
+    with hybrid ``tracking``, the patient tracker on and hybrid control."""
     pv = spec.patient or PatientVariation()
+    patient = {"motion": "square"}
+    if spec.tracking == "hybrid":
+        patient |= {"tracker": True, "tracking": "hybrid"}
     return Protocol.model_validate({
         "name": f"experiment1-{spec.config}", "seed": spec.seed,
         "phantom": {"working_length_mm": pv.working_length_mm, "tilt_deg": pv.tilt_deg,
                     "orifice_gap_mm": 2.0, "preshaped": True},
-        "patient": {"motion": "square"},
+        "patient": patient,
         "recording": {"enabled": False},
         "steps": [{"align": {"duration_s": spec.duration_s, "config": spec.config}}],
     })
@@ -443,6 +485,34 @@ def checks(runs: dict[str, list[AlignmentRun]]) -> list[Check]:
                          f"{max(rec, default=float('nan')):.2f} s after the peak "
                          f"(thesis: about {THESIS['recovery_c_s']:g} s)"))
     return out
+
+
+def hybrid_checks(runs: dict[str, list[AlignmentRun]]) -> list[Check]:
+    """Hybrid control's targets on experiment 1's path (:data:`HYBRID_TARGETS`), at every
+    speed of every run: the tip within 0.5 mm of its seated position across the canal axis
+    and along it, and no detachment (a run that did not end ok shows no target)."""
+    rs = [r for v in runs.values() for r in v]
+    bad = [f"{r.spec.config}/{r.spec.seed}: {r.status} {r.reason}".strip()
+           for r in rs if r.status != "ok" or not r.speeds]
+    note = f"; not ok: {'; '.join(bad)}" if bad else ""
+    lat_lim, z_lim = HYBRID_TARGETS["lateral_mm"], HYBRID_TARGETS["z_ripple_mm"]
+
+    def worst(get) -> float:
+        vals = [get(s) for r in rs for s in r.speeds if math.isfinite(get(s))]
+        return max(vals, default=float("nan"))
+
+    lat = worst(lambda s: s.max_lateral_mm)
+    z = worst(lambda s: s.max_rel_mm["z"])
+    n_det = sum(len(s.detachments) for r in rs for s in r.speeds)
+    speeds = ", ".join(f"{v:g}" for v in (rs[0].spec.speeds_mm_s if rs else ()))
+    return [
+        Check(f"hybrid control: the tip within {lat_lim:g} mm of its seated position across "
+              f"the canal at every speed ({speeds} mm/s)", not bad and lat <= lat_lim,
+              f"worst {lat:.3f} mm{note}"),
+        Check(f"hybrid control: Z ripple within {z_lim:g} mm and no detachment at every "
+              "speed", not bad and z <= z_lim and n_det == 0,
+              f"worst |z| {z:.3f} mm, {n_det} detachments{note}"),
+    ]
 
 
 # ---------------------------------------------------------------------------- the bench

@@ -130,6 +130,7 @@ class AlignmentResult:
     checks: list[Check]
     figures: list[Path]
     wall_s: float
+    tracking: str = "force"
 
     @property
     def by_config(self) -> dict[str, list[al.AlignmentRun]]:
@@ -166,7 +167,11 @@ class AlignmentResult:
                               "position along the file axis (at the square's start), until "
                               f"back within {al.DETACH_END_MM} mm; recovery_s from the peak",
                 "expected_ripple_mm": "admittance law: 15 mm x (1 - k fz_max / (b3 v))",
+                "max_lateral_mm": "the largest relative distance across the file axis at "
+                                  "the square's start (mm)",
             },
+            "tracking": self.tracking,
+            "hybrid_targets": al.HYBRID_TARGETS if self.tracking == "hybrid" else None,
             "thesis": al.THESIS, "checks": _checks_dicts(self.checks),
             "figures": [str(p) for p in self.figures], "wall_s": self.wall_s,
         })
@@ -175,12 +180,16 @@ class AlignmentResult:
 def alignment_experiment(*, config: str = "all", speeds: Sequence[float] = al.SPEEDS_MM_S,
                          seeds: int = 1, seed: int = 1, workers: int | None = None,
                          out: str | Path | None = None, no_figures: bool = False,
-                         progress: Progress | None = None,
+                         tracking: str = "force", progress: Progress | None = None,
                          cancel: threading.Event | None = None) -> AlignmentResult:
     """Experiment 1 (Table 6.4): ``config`` A, B, C or all; platform ``speeds`` (mm/s);
     ``seeds`` seeded random patients from ``seed`` (one: the thesis's set-up); ``workers``
     local processes (None: the CPU count); figures in ``out`` (default
-    runs/experiments/alignment) unless ``no_figures``."""
+    runs/experiments/alignment, or alignment-hybrid) unless ``no_figures``. ``tracking``:
+    ``force``, the thesis's admittance alone, checked against the thesis's claims; ``hybrid``,
+    with the patient tracker and its motion fed forward, checked against
+    :data:`~dentibot.experiments.alignment.HYBRID_TARGETS`."""
+    tracking = _choice("tracking", tracking, al.TRACKING)
     configs = list(al.CONFIGS) if config == "all" else [_choice("config", config,
                                                                 (*al.CONFIGS, "all"))]
     speeds_mm_s = speeds_of(speeds)
@@ -188,29 +197,33 @@ def alignment_experiment(*, config: str = "all", speeds: Sequence[float] = al.SP
     n_workers = _workers(workers)
     specs = [al.AlignmentSpec(config=c, seed=s, speeds_mm_s=speeds_mm_s,
                               patient=None if len(seed_list) == 1 else al.variation(s),
-                              keep_series=not no_figures and s == seed_list[0])
+                              keep_series=not no_figures and s == seed_list[0],
+                              tracking=tracking)
              for c in configs for s in seed_list]
     started = time.perf_counter()
 
     def done(spec: al.AlignmentSpec, run: al.AlignmentRun) -> None:
-        _say(progress, f"config {spec.config} seed {spec.seed}: {run.status}, max |x| "
-                       f"{run.max_rel_mm['x']:.2f} mm, peak out {run.max_out_mm:.2f} mm "
-                       f"({run.wall_s:.0f} s)")
+        mode = "" if tracking == "force" else f" ({tracking})"
+        _say(progress, f"config {spec.config} seed {spec.seed}{mode}: {run.status}, max |x| "
+                       f"{run.max_rel_mm['x']:.2f} mm, max across {run.max_lateral_mm:.2f} "
+                       f"mm, peak out {run.max_out_mm:.2f} mm ({run.wall_s:.0f} s)")
 
     runs = run_all(al.run_alignment, specs, workers=n_workers, done=done, cancel=cancel)
     wall = time.perf_counter() - started
-    result = AlignmentResult(runs=runs, seeds=seed_list, checks=[], figures=[], wall_s=wall)
+    result = AlignmentResult(runs=runs, seeds=seed_list, checks=[], figures=[], wall_s=wall,
+                             tracking=tracking)
     by_config = result.by_config
     if not no_figures:
         from dentibot.experiments.figures import alignment_figures, ripple_figure
 
-        folder = Path(out or FIGURES_DIR / "alignment")
+        folder = Path(out or FIGURES_DIR / ("alignment" if tracking == "force"
+                                            else "alignment-hybrid"))
         for rs in by_config.values():
             result.figures += alignment_figures(rs[0], folder)
-        rip = ripple_figure(by_config, folder)
+        rip = ripple_figure(by_config, folder) if tracking == "force" else None
         if rip is not None:
             result.figures.append(rip)
-    result.checks = al.checks(by_config)
+    result.checks = al.checks(by_config) if tracking == "force" else al.hybrid_checks(by_config)
     return result
 
 
@@ -359,30 +372,39 @@ class PatientJerkResult:
 
     def to_dict(self) -> dict:
         return clean({"experiment": "patient-jerk", "mm": self.spec.mm,
-                      "mm_s": self.spec.mm_s, "seed": self.spec.seed,
+                      "mm_s": self.spec.mm_s, "deg": self.spec.deg, "hinge_mm": pj.HINGE_MM,
+                      "seed": self.spec.seed,
                       "watch_s": self.spec.watch_s,
                       "modes": {m: r.to_dict() for m, r in self.runs.items()},
                       "checks": _checks_dicts(self.checks), "wall_s": self.wall_s})
 
 
-def patient_jerk_experiment(*, mm: float = 3.0, mm_s: float = 20.0, seed: int = 1,
-                            workers: int | None = None, progress: Progress | None = None,
+def patient_jerk_experiment(*, mm: float = 3.0, mm_s: float = 20.0, deg: float = 0.0,
+                            seed: int = 1, workers: int | None = None,
+                            progress: Progress | None = None,
                             cancel: threading.Event | None = None) -> PatientJerkResult:
-    """The tooth steps ``mm`` towards the robot along the canal at ``mm_s`` while the file
-    works at the working length, with depth in the base frame (``force``), in the tooth's
-    frame (``tracked``), and with hybrid control (``hybrid``)."""
+    """The tooth steps ``mm`` towards the robot along the canal at ``mm_s`` (and turns by
+    ``deg`` about the jaw's hinge) while the file works at the working length, with depth in
+    the base frame (``force``), in the tooth's frame (``tracked``), and with hybrid control
+    (``hybrid``)."""
     in_range("mm", [mm], "mm", 10.0)
     in_range("mm_s", [mm_s], "mm/s", 200.0)
-    specs = [pj.JerkSpec(mode=m, mm=mm, mm_s=mm_s, seed=seed) for m in pj.MODES]
+    if not (math.isfinite(deg) and abs(deg) <= pj.MAX_DEG):
+        raise ConfigError("deg", deg, f"-{pj.MAX_DEG:g} <= deg <= {pj.MAX_DEG:g}")
+    specs = [pj.JerkSpec(mode=m, mm=mm, mm_s=mm_s, seed=seed, deg=deg) for m in pj.MODES]
     started = time.perf_counter()
 
     def done(spec: pj.JerkSpec, run: pj.JerkRun) -> None:
+        axis = "--" if run.axis_error_deg is None or math.isnan(run.axis_error_deg) \
+            else f"{run.axis_error_deg:.2f}"
         _say(progress, f"{spec.mode}: overshoot {run.overshoot_mm:.2f} mm, "
-                       f"{run.past_wl_s:.2f} s past the working length")
+                       f"{run.past_wl_s:.2f} s past the working length, axis error "
+                       f"{axis} deg, {run.final_state}")
 
     runs = run_all(pj.run_jerk, specs, workers=_workers(workers), done=done, cancel=cancel)
     by = {r.mode: r for r in runs}
-    return PatientJerkResult(by, pj.checks(by), specs[0], time.perf_counter() - started)
+    return PatientJerkResult(by, pj.checks(by, deg=deg), specs[0],
+                             time.perf_counter() - started)
 
 
 # ---------------------------------------------------------------------------- by name

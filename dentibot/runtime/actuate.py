@@ -65,8 +65,8 @@ async def arm_command(rt, est):
     tooth = rt.ctx.tooth
     ff = None if tooth is None else tooth.feedforward_h(rt.r_0_6 @ rt.R_6_H)
     turn = axis_servo_twist(rt, est)
-    if turn is not None:
-        ff = turn if ff is None else ff + turn
+    if turn is not None and ff is None:   # a moving tooth bends the file too: not a tilt
+        ff = turn
     cmd = admittance_command(rt.admittance, est.q_deg, est.wrench_h,
                              feed_force_n(mode, rt.ctx, rt.cfg.plan), rt.chain, ff)
     bad = rt.supervisor.check_command(cmd.qdot_deg_s, cmd.twist, rt.speed_limits)

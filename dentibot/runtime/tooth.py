@@ -14,6 +14,11 @@ tooth when the patient moves, along the canal axis included. Without a tracker t
 stays frozen in {0}, as in the thesis, and a patient moving along the canal changes the true
 depth unseen.
 
+With hybrid control (``ToothConfig.feedforward``) the tooth's rigid motion, estimated from
+successive poses, is fed forward to the arm as a twist at the file tip
+(:meth:`ToothFrame.feedforward_h`): the file moves with the part of the tooth it is in and
+the handpiece turns with a turning tooth.
+
 A string that goes slack, over its range, out of agreement with the others, or a tracker that
 stops answering, is a fault while a reference is held (the working length is no longer
 protected); before the file goes in it only makes the tooth pose unknown.
@@ -24,6 +29,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from dentibot.control.strings import (
     LengthLimits,
@@ -48,12 +54,18 @@ class ToothConfig:
     start_pose: np.ndarray = field(default_factory=lambda: np.eye(4))
     limits: LengthLimits = field(default_factory=LengthLimits)
     sigma_mm: float = 0.01
-    #: hybrid control: the arm moves with the tooth (its velocity fed forward)
+    #: hybrid control: the arm moves with the tooth (its rigid motion fed forward)
     feedforward: bool = False
-    #: time constant of the tooth velocity's low-pass filter (s) and the speed below which
+    #: time constant of the orifice velocity's low-pass filter (s) and the speed below which
     #: nothing is fed forward (mm/s): a still patient feeds no encoder noise to the arm
     velocity_tau_s: float = 0.008
     deadband_mm_s: float = 2.0
+    #: the same for the tooth's turning rate (s, deg/s). The orientation's noise (about
+    #: 0.01 deg per reading) differenced over one 2 ms period is about 9 deg/s per axis; the
+    #: 16 ms filter brings a still tooth's rate to 1.2 deg/s (median) and 3.3 deg/s (the
+    #: largest in 10 s of the simulated tracker), below the 5 deg/s deadband
+    rotation_tau_s: float = 0.016
+    deadband_deg_s: float = 5.0
 
 
 class ToothFrame:
@@ -63,8 +75,12 @@ class ToothFrame:
         self.cfg = cfg
         self.ts = period_s
         self._alpha = period_s / (cfg.velocity_tau_s + period_s)
+        self._alpha_w = period_s / (cfg.rotation_tau_s + period_s)
         self.velocity_0: np.ndarray | None = None   # the orifice's velocity (mm/s), filtered
+        self.omega_0: np.ndarray | None = None      # the tooth's turning rate (rad/s), filtered
         self._o_prev: np.ndarray | None = None
+        self._r_prev: np.ndarray | None = None      # 0R_T of the previous tick
+        self.point_0: np.ndarray | None = None      # the file tip of the last tick ({0}, mm)
         self.pose_mt: np.ndarray | None = None      # MT_T of the last good tick
         self.pose_0t: np.ndarray | None = None      # 0T_T of the last good tick
         self.residual_mm = float("nan")
@@ -116,26 +132,62 @@ class ToothFrame:
             return Finding(finding.kind, f"{finding.detail}: the depth in the tooth's frame "
                                          "is lost with the file in the canal")
         ctx.depth_ref = ref = self.reference_0()
-        self._track_velocity(np.array(ref[0]))
+        self._track_velocity(np.array(ref[0]), self.pose_0t[:3, :3])
+        self.point_0 = np.array(est.tip_0, float)
         est.depth_mm = depth_along(est.tip_0, ref)
         return None
 
-    def _track_velocity(self, o: np.ndarray) -> None:
+    def _track_velocity(self, o: np.ndarray, r_0_t: np.ndarray | None = None) -> None:
+        """The tooth's velocities from this tick's orifice ``o`` ({0}, mm) and orientation
+        ``r_0_t`` (0R_T; None: the orientation is not tracked), by finite differences over
+        one period, through first-order low-passes of time constants ``velocity_tau_s``
+        and ``rotation_tau_s`` (:meth:`feedforward_h`)."""
         if self._o_prev is not None:
             raw = (o - self._o_prev) / self.ts
             v = self.velocity_0
             self.velocity_0 = raw if v is None else v + self._alpha * (raw - v)
         self._o_prev = o
+        if r_0_t is None:
+            return
+        if self._r_prev is not None:
+            raw = Rotation.from_matrix(r_0_t @ self._r_prev.T).as_rotvec() / self.ts
+            w = self.omega_0
+            self.omega_0 = raw if w is None else w + self._alpha_w * (raw - w)
+        self._r_prev = np.array(r_0_t, float)
 
-    def feedforward_h(self, r_0_h: np.ndarray) -> np.ndarray | None:
-        """Hybrid control's feedforward: the orifice's velocity in {H} axes as a twist (mm/s;
-        no rotation), while a reference is held and the tooth moves faster than the
-        deadband; None otherwise (or without ``feedforward`` in the configuration)."""
-        v = self.velocity_0
-        if not self.cfg.feedforward or self._ref_t is None or v is None \
-                or self.pose_0t is None or float(np.linalg.norm(v)) < self.cfg.deadband_mm_s:
+    def feedforward_h(self, r_0_h: np.ndarray, point_0=None) -> np.ndarray | None:
+        """Hybrid control's feedforward: the tooth's rigid motion as a twist in {H} axes
+        (mm/s, rad/s), taken at the point of the tooth that coincides with the controller's
+        reference point: ``point_0`` ({0}, mm), by default the file tip of the last tick
+        (point B of self-alignment; a caller whose reference point is elsewhere, point A
+        while dragging, passes it)::
+
+            omega = 0omega_T                     (rad/s)
+            v     = v_O + omega x (point - O)    (mm/s; O the registered orifice)
+            twist = (0R_H^T v, 0R_H^T omega)
+
+        ``v_O`` and ``omega`` are estimated from successive tracked poses: the orifice's
+        displacement over one period, and the rotation vector of ``0R_T(k) 0R_T(k-1)^T``
+        over one period (the angular velocity in {0}), low-passed with the time constants
+        ``velocity_tau_s`` and ``rotation_tau_s``. Deadbands, so that a still patient feeds
+        no encoder noise to the arm: nothing at all while the orifice is slower than
+        ``deadband_mm_s`` and the tooth turns slower than ``deadband_deg_s``; a turn slower
+        than ``deadband_deg_s`` is fed as none (omega = 0) while the tooth translates. None
+        when nothing is fed, while no reference is held, the pose is unknown, or without
+        ``feedforward`` in the configuration."""
+        c = self.cfg
+        v, w = self.velocity_0, self.omega_0
+        if not c.feedforward or self._ref_t is None or v is None or self.pose_0t is None:
             return None
-        return np.concatenate([r_0_h.T @ v, np.zeros(3)])
+        moving = float(np.linalg.norm(v)) >= c.deadband_mm_s
+        turning = w is not None and float(np.degrees(np.linalg.norm(w))) >= c.deadband_deg_s
+        if not (moving or turning):
+            return None
+        if not turning:
+            return np.concatenate([r_0_h.T @ v, np.zeros(3)])
+        point = self.point_0 if point_0 is None else np.asarray(point_0, float)
+        v_p = v if point is None else v + np.cross(w, point - self._o_prev)
+        return np.concatenate([r_0_h.T @ v_p, r_0_h.T @ w])
 
     def register(self, orifice_0, axis_0) -> None:
         """Keep the depth reference (orifice point, canal axis; {0}) in the tooth's frame."""
@@ -147,7 +199,7 @@ class ToothFrame:
 
     def forget(self) -> None:
         self._ref_t = None
-        self.velocity_0 = self._o_prev = None
+        self.velocity_0 = self._o_prev = self.omega_0 = self._r_prev = self.point_0 = None
 
     def reference_0(self) -> tuple[tuple, tuple] | None:
         """The registered reference mapped into {0} with the tooth's pose now."""
@@ -156,3 +208,4 @@ class ToothFrame:
         R, p = self.pose_0t[:3, :3], self.pose_0t[:3, 3]
         o, a = self._ref_t
         return tuple((R @ o + p).tolist()), tuple((R @ a).tolist())
+

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from dentibot.control.feedrate import FeedrateController
+from dentibot.control.torque_rise import TorqueRise
 from dentibot.states.load_calibration import LoadCalibration, TcpRoutine
 from dentibot.states.strategies import Decision, DrillingStrategy
 from dentibot.states.treatment import LEAF_STATES
@@ -52,6 +53,8 @@ class Context:
     #: self-alignment's orientation loop (control.canal_axis.CanalAxisServo), when the plan
     #: has one and the tip is the reference point
     axis_servo: Any = None
+    #: the file torque's slope and projection while feeding (control.torque_rise.TorqueRise)
+    torque_rise: TorqueRise | None = None
 
 
 def feed_force_n(mode, ctx: Context, plan) -> float:
@@ -185,11 +188,13 @@ class Drilling(Behaviour):
 
 
 class Feeding(Drilling):
-    """5.4: the drilling strategy decides the feed every tick; a torque above the hard limit
-    asks for a reversal."""
+    """5.4: the drilling strategy decides the feed every tick; a torque above the hard limit,
+    or rising so fast that it will be before a reversal takes effect
+    (:mod:`dentibot.control.torque_rise`), asks for a reversal."""
 
     def enter(self, ctx, rt, est, prev):
         set_depth_reference(ctx, rt, est)
+        ctx.torque_rise = TorqueRise(ts=rt.ts)
         if prev == State.TREATING_DRILLING_REVERSING:
             ctx.strategy.reversed()
         ctx.strategy.start_pass(est.depth_mm if est and est.depth_mm is not None else 0.0)
@@ -202,9 +207,19 @@ class Feeding(Drilling):
         ctx.decision = dec = ctx.strategy.step(tau, depth)
         ctx.decided = rt.ticks
         ev: list[Event] = []
-        if tau > th.torque_limit_mnm and "reversal_needed" not in dec.events:
-            ev.append(("reversal_needed", (f"file torque {tau:.1f} mNm > limit "
-                                           f"{th.torque_limit_mnm:.1f} mNm")))
+        ahead = ctx.torque_rise.step(tau)
+        if est.motor_rpm < 0.9 * rt.cfg.handpiece.drilling_rpm:
+            ahead = tau                   # spinning up: the current accelerates the rotor
+        if "reversal_needed" not in dec.events:
+            if tau > th.torque_limit_mnm:
+                ev.append(("reversal_needed", (f"file torque {tau:.1f} mNm > limit "
+                                               f"{th.torque_limit_mnm:.1f} mNm")))
+            elif ahead > th.torque_limit_mnm:
+                r = ctx.torque_rise
+                ev.append(("reversal_needed", (
+                    f"file torque {tau:.1f} mNm rising at {r.slope_mnm_s:.0f} mNm/s: "
+                    f"{ahead:.1f} mNm within {r.p.horizon_s * 1e3:.0f} ms > limit "
+                    f"{th.torque_limit_mnm:.1f} mNm")))
         for e in dec.events:
             ev.append((e, f"tau {tau:.1f} mNm, fz* {dec.fz_star_n:.3f} N, depth {depth:.2f} mm"))
         return ev

@@ -35,3 +35,35 @@ def test_patient_jerk_json_gives_both_modes_side_by_side(capsys):
 def test_patient_jerk_refuses_a_jerk_out_of_range(capsys):
     assert main(["experiment", "patient-jerk", "--mm", "50"]) == 2
     assert "mm" in capsys.readouterr().err
+
+
+def test_the_jaw_hinge_lies_along_the_canal_and_turns_it_across():
+    """The hinge 60 mm beyond the orifice along the canal, its axis across the canal: a 5 deg
+    turn tilts the canal by 5 deg and moves the working length's point (16 mm in) sideways by
+    (60 - 16) sin 5 deg = 3.83 mm, and the orifice by 60 sin 5 deg = 5.23 mm."""
+    import math
+
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from dentibot.experiments import patient_jerk as pj
+
+    o, a = np.array([100.0, 0.0, 120.0]), np.array([0.0, 0.0, -1.0])
+    centre, axis = pj.hinge(o, a)
+    np.testing.assert_allclose(centre, o + 60.0 * a, atol=1e-12)
+    assert abs(np.dot(axis, a)) < 1e-12 and np.linalg.norm(axis) == pytest.approx(1.0)
+    R = Rotation.from_rotvec(np.radians(5.0) * np.array(axis)).as_matrix()
+    wl = o + 16.0 * a
+    moved = centre + R @ (wl - centre)
+    assert np.linalg.norm(moved - wl) == pytest.approx(2 * 44.0 * math.sin(math.radians(2.5)))
+    assert abs(np.dot(moved - wl, a)) < 0.2                 # sideways, to first order
+    assert pj.axis_angle_deg(a, R @ a) == pytest.approx(5.0)
+    assert pj.axis_angle_deg((1.0, 0.0, 0.0), (0.0, 2.0, 0.0)) == pytest.approx(90.0)
+    # a canal along base x takes base y for the hinge's axis
+    _, axis_x = pj.hinge(o, (1.0, 0.0, 0.0))
+    assert abs(axis_x[0]) < 1e-12 and np.linalg.norm(axis_x) == pytest.approx(1.0)
+
+
+def test_patient_jerk_refuses_a_turn_out_of_range(capsys):
+    assert main(["experiment", "patient-jerk", "--deg", "45"]) == 2
+    assert "deg" in capsys.readouterr().err

@@ -150,3 +150,118 @@ async def test_the_tracker_follows_a_turning_patient():
     turned = Rotation.from_matrix(w.phantom_rotation @ w.phantom_pose[:3, :3].T)
     assert np.degrees(turned.magnitude()) == pytest.approx(3.0, abs=1e-9)
     assert row["depth_mm"] == pytest.approx(row["true_depth_mm"], abs=0.2)
+
+
+def test_a_turning_tooth_feeds_its_rigid_motion_forward_at_the_tip():
+    """The tooth turns at 10 deg/s about the y axis through a hinge 60 mm below the orifice
+    (the jaw), the file tip 5 mm into the canal. The feedforward is the tooth's twist at
+    the tip, worked out by hand for a rigid body turning about a fixed centre c:
+    omega = (0, w, 0) and v_tip = omega x (tip - c) = (65 w, 0, 0) mm/s with
+    tip - c = (0, 0, 65) mm; in {H} (turned 90 deg about z) base x is -y and base y is x."""
+    w = np.radians(10.0)                                   # rad/s
+    centre = np.array([0.0, 0.0, -60.0])
+    o_rest = np.zeros(3)
+    tip = np.array([0.0, 0.0, 5.0])                        # a point fixed in {0}
+    ts = 0.002
+    tf = ToothFrame(ToothConfig(geometry=ring_geometry(), feedforward=True), period_s=ts)
+    tf.pose_0t = np.eye(4)
+    tf.register(o_rest, (0.0, 0.0, -1.0))
+    n = 50                                                 # 0.1 s: 12 filter time constants
+    for k in range(-n, 1):                                 # the turn ends at angle 0 (k = 0)
+        R = Rotation.from_rotvec([0.0, w * ts * k, 0.0]).as_matrix()
+        tf.pose_0t = _pose(Rotation.from_matrix(R).as_rotvec(), centre + R @ (o_rest - centre))
+        tf._track_velocity(tf.pose_0t[:3, 3].copy(), R)
+    r_0_h = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    ff = tf.feedforward_h(r_0_h, point_0=tip)
+    np.testing.assert_allclose(ff[3:], [w, 0.0, 0.0], atol=1e-9)     # (0, w, 0) in {H}
+    # the orifice's velocity is 60 w along x; the low-pass lags its turning direction by
+    # about w tau (1.4e-3 rad), hence 0.02 mm/s
+    np.testing.assert_allclose(ff[:3], [0.0, -65.0 * w, 0.0], atol=0.02)
+    # the default point is the file tip of the last tick
+    tf.point_0 = tip
+    np.testing.assert_allclose(tf.feedforward_h(r_0_h), ff, atol=1e-12)
+    # at the orifice itself, only the orifice's own velocity: 60 w along x
+    np.testing.assert_allclose(tf.feedforward_h(np.eye(3), point_0=o_rest)[:3],
+                               [60.0 * w, 0.0, 0.0], atol=0.02)
+
+
+def test_a_tooth_turning_about_the_tip_feeds_a_rotation_with_no_translation_there():
+    """Turning at 5 deg/s about the tip itself (centre = tip, 8 mm into the canal along -z):
+    the tip's point of the tooth does not move, so the twist at the tip is (0, 0, 0, omega),
+    though the orifice moves (at 8 mm x omega = 0.70 mm/s)."""
+    w = np.radians(5.0)
+    tip = np.array([0.0, 0.0, -8.0])
+    ts = 0.002
+    tf = ToothFrame(ToothConfig(geometry=ring_geometry(), feedforward=True), period_s=ts)
+    tf.pose_0t = np.eye(4)
+    tf.register((0.0, 0.0, 0.0), (0.0, 0.0, -1.0))
+    for k in range(-50, 1):
+        R = Rotation.from_rotvec([w * ts * k, 0.0, 0.0]).as_matrix()
+        tf._track_velocity(tip + R @ (np.zeros(3) - tip), R)
+    ff = tf.feedforward_h(np.eye(3), point_0=tip)
+    np.testing.assert_allclose(ff[3:], [w, 0.0, 0.0], atol=1e-9)
+    # the filter lags the orifice velocity's direction by about w (tau + ts/2): 0.7 mm/s
+    # x 8e-4 rad = 6e-4 mm/s
+    np.testing.assert_allclose(ff[:3], [0.0, 0.0, 0.0], atol=1e-3)
+
+
+def test_a_turn_slower_than_the_deadband_feeds_nothing():
+    """1 deg/s about the orifice, below the 5 deg/s deadband, and the orifice still: nothing
+    is fed forward (a still patient's orientation noise does not move the arm)."""
+    ts = 0.002
+    tf = ToothFrame(ToothConfig(geometry=ring_geometry(), feedforward=True), period_s=ts)
+    tf.pose_0t = np.eye(4)
+    tf.register((0.0, 0.0, 0.0), (0.0, 0.0, -1.0))
+    for k in range(100):
+        R = Rotation.from_rotvec([0.0, 0.0, np.radians(1.0) * ts * k]).as_matrix()
+        tf._track_velocity(np.zeros(3), R)
+    assert tf.feedforward_h(np.eye(3), point_0=(0.0, 0.0, -5.0)) is None
+
+
+def _angle_deg(u, v) -> float:
+    c = float(np.dot(u, v) / (np.linalg.norm(u) * np.linalg.norm(v)))
+    return float(np.degrees(np.arccos(min(1.0, max(-1.0, c)))))
+
+
+@pytest.mark.parametrize("hybrid", [True, False])
+async def test_hybrid_control_turns_the_handpiece_with_a_turning_tooth(hybrid):
+    """The patient turns 5 deg at 20 deg/s about a hinge 60 mm beyond the orifice along the
+    canal while the file is 3 mm in (the canal-axis servo off: the feedforward alone). With
+    hybrid control the handpiece turns with the tooth: by the tooth's 5 deg within a fifth
+    of it, and the file never more than that fifth (1 deg) further from the canal's axis than
+    before the turn; the treatment goes on and the depth stays the true depth. With the
+    tracker alone (no feedforward) the handpiece turns by force only, which at this rate
+    lags by more than that fifth."""
+    from sim_runs import GAP_MM, MADE
+
+    from dentibot.app.procedure import Procedure
+    from dentibot.app.tracking import sim_tooth_config
+    from dentibot.runtime.config import RuntimeConfig, TreatmentPlan
+    from dentibot.sim.world import World, WorldConfig
+
+    w = World(WorldConfig(seed=3))
+    tp = TrackerSimParams()
+    cfg = RuntimeConfig(plan=TreatmentPlan(orifice_gap_mm=GAP_MM, axis_servo=None),
+                        tooth=sim_tooth_config(w, tp, feedforward=hybrid))
+    h = Procedure.simulated(w, cfg, keep_rows=True, tracker=tp, hybrid=hybrid)
+    MADE.append(h)
+    await _drill_until_deep(h, 3.0)
+    o, a = w.canal_axis_0()
+    file_0 = np.array(w.axis_0)
+    error_0 = _angle_deg(file_0, a)
+    turn = np.cross(a, [1.0, 0.0, 0.0])
+    w.motion = Jerk(w.motion, w.t, mm=0.0, deg=5.0, axis=tuple(turn / np.linalg.norm(turn)),
+                    centre_mm=tuple(np.array(o) + 60.0 * np.array(a)), deg_s=20.0)
+    errors = []
+    for _ in range(250):                                    # 0.5 s: the turn takes 0.25 s
+        await h.run_for(ticks=1)
+        errors.append(_angle_deg(w.axis_0, w.canal_axis_0()[1]))
+    assert _angle_deg(a, w.canal_axis_0()[1]) == pytest.approx(5.0, abs=1e-6)
+    if not hybrid:
+        assert max(errors) > error_0 + 1.0
+        return
+    assert _angle_deg(file_0, w.axis_0) == pytest.approx(5.0, abs=1.0)
+    assert max(errors) <= error_0 + 1.0
+    assert h.runtime.state.startswith("treating")
+    row = h.rows[-1]
+    assert row["depth_mm"] == pytest.approx(row["true_depth_mm"], abs=0.2)
