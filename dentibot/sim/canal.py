@@ -84,6 +84,11 @@ class CanalParams:
     # assumption: wall stiffness 20 N/mm per mm of contact length (acrylic/dentin surface
     # under a ~0.5 mm file; far stiffer than the file, so the file's compliance dominates).
     wall_n_mm_per_mm: float = 20.0
+    # Lateral compliance of the tooth's support (mm/N): the tooth moves sideways as a body
+    # under the file's loads (a patient's periodontal ligament, a phantom's holder and
+    # platform). It softens a file pushed sideways and leaves a couple alone. 0: a rigid
+    # holder (the training block's default).
+    support_mm_per_n: float = 0.0
     # assumption: tip outside the lumen by more than this lands on the chamber floor.
     access_margin_mm: float = 1.0
     # assumption: canal bottom / chamber floor axial stiffness (N/mm).
@@ -143,7 +148,8 @@ class CanalParams:
             raise ConfigError("canal.slice_mm", self.slice_mm, "0 < slice <= 1 mm")
         if not self.cutting_energy_mj_mm3 > 0.0:
             raise ConfigError("canal.cutting_energy_mj_mm3", self.cutting_energy_mj_mm3, "> 0")
-        for name in ("rub_mnm_per_mm", "screw_n_per_mnm", "withdraw_deadband_mm"):
+        for name in ("rub_mnm_per_mm", "screw_n_per_mnm", "withdraw_deadband_mm",
+                     "support_mm_per_n"):
             if not getattr(self, name) >= 0.0:
                 raise ConfigError(f"canal.{name}", getattr(self, name), ">= 0")
         if self.curve_start_mm is not None and not (
@@ -408,7 +414,8 @@ class Canal:
         ends of its part in the canal (the orifice and the tip: a straight line in a tapered
         lumen, bent by end loads, meets the walls there first), each with the wall stiffness
         of the slices that penetrate in its half. The file is a tapered cantilever clamped at the shank
-        (:meth:`NiTiFile.compliance_mm_n`): the loads ``lambda_j`` (along the inward normal
+        (:meth:`NiTiFile.compliance_mm_n`), on a tooth whose support adds the same compliance
+        to every pair (``support_mm_per_n``): the loads ``lambda_j`` (along the inward normal
         ``-n_j``) bend it, and where it touches the wall's penetration is what the bending
         leaves, ``lambda_j / k_j = pen_j - sum_k c(j, k) (n_j . n_k) lambda_k``, with
         ``lambda >= 0`` and no penetration where there is no load (a two-contact linear
@@ -435,7 +442,9 @@ class Canal:
             k = kd * max(1, int(np.count_nonzero(net[lo:hi] > 0.0)))
             pts.append((complex(ez[j]), float(net[j]), k, s_tip - float(s[j]), float(g[j])))
         npt = len(pts)
-        c = [[f.compliance_mm_n(pts[i][3], pts[j][3]) for j in range(npt)] for i in range(npt)]
+        sup = p.support_mm_per_n                         # the tooth moves as a body on it
+        c = [[f.compliance_mm_n(pts[i][3], pts[j][3]) + sup for j in range(npt)]
+             for i in range(npt)]
         normals = [e / abs(e) if abs(e) > 1e-9 else 0j for e, *_ in pts]
         active = [pts[i][1] > 0.0 and normals[i] != 0j for i in range(npt)]
         lam = [0.0] * npt

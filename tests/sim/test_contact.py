@@ -142,12 +142,12 @@ def test_rotation_in_a_curve_fatigues_the_file_by_miners_rule():
     assert cycles == pytest.approx(n_f, rel=0.02)
 
 
-def _interact(tilt_deg: float, offset_mm: float, depth_mm: float = 3.0):
+def _interact(tilt_deg: float, offset_mm: float, depth_mm: float = 3.0, **canal):
     """A straight #25/.06 file 3 mm deep in a straight canal, turned by ``tilt_deg`` about
     {P}'s y axis with its tip ``offset_mm`` off the centreline along x."""
     from dentibot.sim.canal import Canal
 
-    canal = Canal(CanalParams())
+    canal = Canal(CanalParams(**canal))
     a = np.radians(tilt_deg)
     canal._entered, canal._last_depth = True, depth_mm
     return canal.interact((offset_mm, 0.0, depth_mm), (np.sin(a), 0.0, np.cos(a)),
@@ -187,3 +187,17 @@ def test_a_file_pushed_sideways_bends_as_a_cantilever_of_its_own_stiffness():
     bound = file.lateral_stiffness_n_mm(0.0) * pen_tip + \
         file.lateral_stiffness_n_mm(2.75) * pen_orifice
     assert 0.5 * bound < -f[0] <= bound
+
+
+def test_a_compliant_tooth_support_softens_a_push_and_leaves_a_couple_alone():
+    """The support moves the tooth as a body: it adds the same compliance to every pair of
+    contacts. A file pushed sideways (both ends one way) then loads it less; a tilted file
+    (a couple: opposite loads) bends the same, since a rigid translation cancels in it."""
+    push0, push1 = (np.asarray(_interact(0.0, 0.3, **kw).f_lat)
+                    for kw in ({}, {"support_mm_per_n": 1.0}))
+    assert abs(push1[0]) < 0.6 * abs(push0[0])
+    c0, c1 = _interact(10.0, 0.0), _interact(10.0, 0.0, support_mm_per_n=1.0)
+    f0, f1 = np.asarray(c0.f_lat), np.asarray(c1.f_lat)
+    g0, g1 = np.asarray(c0.m_lat), np.asarray(c1.m_lat)
+    # the couple part (moment arms beyond the resultant's) is kept within 25 %
+    assert np.linalg.norm(g1 - 3.0 * f1) == pytest.approx(np.linalg.norm(g0 - 3.0 * f0), rel=0.25)
