@@ -261,8 +261,9 @@ class Procedure:
     async def safe_stop(self) -> None:
         """End the treatment, withdraw the file where possible (the machine's retraction,
         from any state in which the file is in the canal: treating, or a stop, drag or
-        alignment that left it there), stop, and record the file and the arm coming to rest; the devices are stopped in any
-        case. Never raises."""
+        alignment that left it there, or a drag that may have taken it in before any depth
+        reference), stop, and record the file and the arm coming to rest; the devices are
+        stopped in any case. Never raises."""
         rt = self.runtime
 
         def end_treatment() -> None:
@@ -270,7 +271,8 @@ class Procedure:
 
         try:
             await self.call(end_treatment)
-            in_canal = rt.treatment.in_state("treating") or rt.treatment.depth_known
+            tr = rt.treatment
+            in_canal = tr.in_state("treating") or tr.depth_known or tr.maybe_in
             if in_canal and rt.state not in ("treating.retracting", "fault"):
                 await self.command("retract")
             if rt.state == "treating.retracting":

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dentibot.control.depth import depth_along
 from dentibot.control.feedrate import file_torque_estimate_mnm
 from dentibot.control.tick import external_wrench_h
 from dentibot.io.interfaces import Arm, AuxIO, ForceSensor, Handpiece, PatientTracker
@@ -59,12 +60,6 @@ class MotorView:
         self.current_a = est.motor_current_a
         self.velocity_rpm = est.motor_rpm
         self.position_deg = est.motor_pos_deg
-
-
-def depth_along(tip, depth_ref) -> float:
-    """The tip's depth (mm) along ``depth_ref`` = (orifice point, unit canal axis), {0}."""
-    o, a = depth_ref
-    return (tip[0] - o[0]) * a[0] + (tip[1] - o[1]) * a[1] + (tip[2] - o[2]) * a[2]
 
 
 def estimate(q: np.ndarray, raw: np.ndarray, m, chain, r_0_6: np.ndarray, kin, gravity, to_h,

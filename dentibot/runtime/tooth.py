@@ -38,7 +38,7 @@ from dentibot.control.strings import (
     forward,
     track,
 )
-from dentibot.runtime.estimate import depth_along
+from dentibot.control.depth import depth_along
 from dentibot.runtime.finding import Finding
 
 

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from dentibot.control.depth import depth_along
 from dentibot.control.feedrate import FeedrateController
 from dentibot.control.torque_rise import TorqueRise
 from dentibot.states.load_calibration import LoadCalibration, TcpRoutine
@@ -53,6 +54,10 @@ class Context:
     #: self-alignment's orientation loop (control.canal_axis.CanalAxisServo), when the plan
     #: has one and the tip is the reference point
     axis_servo: Any = None
+    #: the tip ({0}, mm) where the file was last known out of the canal: where the procedure
+    #: started (assumption: with the file out), at the end of the load calibration (free
+    #: air) and whenever a withdrawal or the depth says it is out
+    out_point: tuple | None = None
     #: the file torque's slope and projection while feeding (control.torque_rise.TorqueRise)
     torque_rise: TorqueRise | None = None
 
@@ -70,6 +75,14 @@ def feed_force_n(mode, ctx: Context, plan) -> float:
     if mode.feed == "retract":
         return -plan.retract_fz_n
     return 0.0
+
+
+def advance_mm(ctx: Context, est) -> float:
+    """How far (mm) the tip is beyond where the file was last known out of the canal, along
+    the file's axis now (0 when that is not known)."""
+    if ctx.out_point is None:
+        return 0.0
+    return depth_along(est.tip_0, (ctx.out_point, est.axis_0))
 
 
 def set_depth_reference(ctx: Context, rt, est) -> None:
@@ -122,13 +135,21 @@ class Free(Behaviour):
     above ``retract_to_mm``): an operator who stops, drags and aligns again with the file
     inside keeps counting depth from the same orifice, so the working length still holds
     and a retraction still withdraws the file. Once the file is out (or no depth is known)
-    the reference goes, and the next insertion sets a new one."""
+    the reference goes, and the next insertion sets a new one.
+
+    Without a reference (no camera: the orifice is only known once alignment starts) a file
+    dragged into the canal is not seen by depth. What is known is where the file was last out
+    of the canal (:attr:`Context.out_point`): a tip that has gone further than that along the
+    file's axis may be in (``maybe_in``), and a retraction then withdraws it back past that
+    point (:class:`Retracting`)."""
 
     def enter(self, ctx, rt, est, prev):
         self._drop_when_out(ctx, rt, est)
+        self._watch_out_point(ctx, rt, est)
 
     def events(self, ctx, rt, est):
         self._drop_when_out(ctx, rt, est)
+        self._watch_out_point(ctx, rt, est)
         return []
 
     @staticmethod
@@ -139,8 +160,19 @@ class Free(Behaviour):
         if depth is None or depth <= rt.cfg.plan.retract_to_mm:
             ctx.depth_ref = None
             rt.treatment.depth_known = False
+            if est is not None:
+                ctx.out_point = tuple(est.tip_0)
             if ctx.tooth is not None:
                 ctx.tooth.forget()
+
+    @staticmethod
+    def _watch_out_point(ctx, rt, est) -> None:
+        if est is None:
+            return
+        if ctx.out_point is None and ctx.depth_ref is None:
+            ctx.out_point = tuple(est.tip_0)     # assumption: a procedure starts with it out
+        rt.treatment.maybe_in = ctx.depth_ref is None \
+            and advance_mm(ctx, est) > -rt.cfg.plan.retract_to_mm
 
 
 class SelfAligning(Behaviour):
@@ -292,10 +324,25 @@ class PatientMoved(Behaviour):
 class Retracting(Behaviour):
     """Withdrawing the file (negative fz) until the retract depth; a file bound on the way out
     (screw-in, taper lock) stops turning and is withdrawn straight, rather than left stopped
-    in the canal."""
+    in the canal. A file that may have been dragged in before any depth reference is
+    withdrawn along its axis back past where it was last known out (that point as depth 0: the
+    orifice can only be deeper)."""
+
+    def enter(self, ctx, rt, est, prev):
+        self.unknown_mm = None
+        if ctx.depth_ref is None and ctx.out_point is not None and est is not None:
+            ctx.depth_ref = (tuple(ctx.out_point), tuple(est.axis_0))
+            est.depth_mm = self.unknown_mm = advance_mm(ctx, est)
+            rt.treatment.depth_known = True
+            rt.treatment.maybe_in = False
 
     def events(self, ctx, rt, est):
         if est.depth_mm is not None and est.depth_mm <= rt.cfg.plan.retract_to_mm:
+            ctx.out_point = tuple(est.tip_0)
+            if self.unknown_mm is not None:
+                return [("retracted", (
+                    f"no depth reference: withdrawn {self.unknown_mm - est.depth_mm:.1f} mm "
+                    "along the file, back past where it was last known out of the canal"))]
             return [("retracted", f"depth {est.depth_mm:.2f} mm")]
         return []
 
@@ -353,6 +400,7 @@ class CalibratingLoad(Behaviour):
         ctx.script_target = calib.step(est.q_deg, est.wrench_s, rt.r_0_6)
         if calib.result is not None:
             rt.set_gravity(calib.result.model)
+            ctx.out_point = tuple(est.tip_0)           # the calibration runs in free air
             return [("calibration_done", f"load: {calib.result.mass_kg * 1e3:.1f} g")]
         if calib.error is not None:
             return [("fault", f"load calibration: {calib.error}")]

@@ -96,7 +96,8 @@ NEEDS = {
     "calibrated": "a load calibration (calibrate load) or a gravity model given in the config",
     "reset_allowed": "the emergency stop released and the fault's cause cleared",
     "more_passes": "",
-    "in_canal": "the file in the canal (a depth reference, set when the file went in)",
+    "in_canal": "the file in the canal (a depth reference, set when the file went in), or "
+                "further along its axis than where it was last known out",
 }
 
 #: Events that cannot be refused by the state (only recorded) when they arrive in ``fault``.
@@ -124,6 +125,8 @@ class Treatment:
         estop_active: the emergency stop is pressed (reset is refused while it is).
         passes_left: further drilling passes after this one (protocol rounds).
         depth_known: a depth reference is held: the file went in and has not come out.
+        maybe_in: no depth reference, but the tip has gone further along the file's axis than
+            where the file was last known out of the canal (dragged in, perhaps).
         fault_causes: why the machine is in ``fault`` (latched, cleared on reset).
     """
 
@@ -131,6 +134,7 @@ class Treatment:
     estop_active: bool = False
     passes_left: int = 0
     depth_known: bool = False
+    maybe_in: bool = False
     fault_causes: list[str] = field(default_factory=list)
     history: list[tuple[str, str, str]] = field(default_factory=list)  # (trigger, src, dst)
     state: str = "idle"
@@ -154,7 +158,7 @@ class Treatment:
         return not self.estop_active
 
     def in_canal(self, event) -> bool:
-        return self.depth_known
+        return self.depth_known or self.maybe_in
 
     def more_passes(self, event) -> bool:
         if self.passes_left > 0:

@@ -333,3 +333,26 @@ async def test_esc_during_alignment_withdraws_a_file_that_is_in_the_canal(steppe
     assert _depths(c)[1] <= 0.0                 # out, by the truth
     assert ("retract", "self_aligning", "treating.retracting") in c.runtime.treatment.history
     await say(c, "quit")
+
+
+async def test_esc_after_dragging_the_file_in_before_any_alignment_withdraws_it(stepped):
+    """The operator drags the file 7-8 mm down into the canal before any alignment (no depth
+    reference: the orifice is only known once alignment starts). Esc withdraws it along its
+    axis back past where it was last known out (the start), and the simulator's truth says it
+    is out; the old behaviour said "retracted" and left it in."""
+    c = stepped
+    c.opt.calibrated = True
+    await say(c, "connect")
+    assert (await say(c, "drag")).kind == "ok"
+    w = c.world
+    w.hand_force_0 = tuple(1.0 * x for x in w.axis_0)      # push along the file: into the canal
+    await c.advance(20.0, until=lambda r: _depths(c)[1] > 8.0)
+    w.hand_force_0 = (0.0, 0.0, 0.0)
+    await c.advance(ticks=20)
+    assert _depths(c)[1] > 7.0 and c.runtime.ctx.depth_ref is None
+    c.procedure.clock.release()
+    reply = await asyncio.wait_for(c.safe_stop(), 60.0)
+    assert reply.kind == "ok" and c.state == "idle"
+    assert _depths(c)[1] <= 0.0                             # out, by the truth
+    assert ("retract", "dragging", "treating.retracting") in c.runtime.treatment.history
+    await say(c, "quit")
