@@ -35,7 +35,8 @@ from dentibot.experiments import alignment as al
 from dentibot.experiments import patient_jerk as pj
 from dentibot.experiments import preclinical as pc
 from dentibot.experiments import results as res
-from dentibot.experiments.common import default_workers
+from dentibot.app import batch
+from dentibot.app.batch import default_workers
 from dentibot.protocol.schema import MATERIAL_NAMES
 
 
@@ -332,8 +333,8 @@ def cmd_preclinical(args: argparse.Namespace) -> int:
               "red-stained canal as a photograph across it shows it (Table 6.5 counts its "
               "pixels, so compare completeness). shaped: how much of the volume between "
               "the initial lumen and the target #25/.06 shape was cut. "
-              f"stalled: feeding without gaining {pc.STALL_GAIN_MM} mm of new depth in "
-              f"{pc.STALL_WINDOW_S:g} s before first reaching the working length. fatigue: "
+              f"stalled: feeding without gaining {batch.STALL_GAIN_MM} mm of new depth in "
+              f"{batch.STALL_WINDOW_S:g} s before first reaching the working length. fatigue: "
               "Miner sum (1 = fatigue fracture). reversals (limit): all reversals (those the "
               "runtime's hard torque limit forced, whatever the strategy). Phantom "
               f"material: {args.material}. Hard torque limit: "

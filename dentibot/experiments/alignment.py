@@ -56,7 +56,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dentibot.control.admittance import EXPERIMENT_1
-from dentibot.experiments.common import Check, distribution, run_protocol
+from dentibot.app.batch import run_protocol
+from dentibot.experiments.common import Check, distribution
 from dentibot.protocol.schema import Protocol
 from dentibot.app.simulated import SQUARE_MM, StewartSquare
 

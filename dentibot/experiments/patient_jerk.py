@@ -39,7 +39,8 @@ import math
 from dataclasses import asdict, dataclass
 
 from dentibot.app.simulated import Jerk
-from dentibot.experiments.common import Check, run_protocol
+from dentibot.app.batch import run_protocol
+from dentibot.experiments.common import Check
 from dentibot.protocol.loader import parse_protocol
 
 MODES = ("force", "tracked", "hybrid")

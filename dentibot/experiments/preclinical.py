@@ -29,7 +29,8 @@ Reported per phantom (Table 6.5's columns plus what explains them):
 - reversals (and how many of them the runtime's hard torque limit, 90 % of 62 mNm, forced:
   the last line of defence, under every strategy), passes to working length (the strategy's arrivals), when the file first
   reached it, the time it spent stalled before that (feeding, yet its deepest point gained
-  less than :data:`STALL_GAIN_MM` in :data:`STALL_WINDOW_S`), and the fatigue used (Miner
+  less than :data:`~dentibot.app.batch.STALL_GAIN_MM` in
+  :data:`~dentibot.app.batch.STALL_WINDOW_S`), and the fatigue used (Miner
   sum, 1 = failure).
 """
 
@@ -41,7 +42,8 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from dentibot.control.feedrate import FILE_STRENGTH_MNM
-from dentibot.experiments.common import Check, distribution, run_protocol
+from dentibot.app.batch import run_protocol, stalled_seconds
+from dentibot.experiments.common import Check, distribution
 from dentibot.protocol.schema import LimitsSpec, Protocol
 
 NAMES = ("A", "B", "C", "D", "E", "F")
@@ -52,10 +54,6 @@ TAU_D_MNM = {"A": 40.0, "B": 40.0, "C": 40.0, "D": 50.0, "E": 50.0, "F": 50.0}
 #: Thesis 6.3: two rounds, 300 s then 200 s.
 ROUNDS_S = (300.0, 200.0)
 STRATEGIES = ("automated", "feedrate", "reversal", "none")
-#: Stall: feeding while the deepest point gains less than this (mm) ...
-STALL_GAIN_MM = 0.1
-#: ... over this window (s).
-STALL_WINDOW_S = 10.0
 #: Traces kept for the figures: one sample every this many control ticks (10 Hz).
 TRACE_EVERY = 50
 #: Table 6.5: preoperative and postoperative red area (pixels), completeness, fracture.
@@ -211,25 +209,6 @@ def preclinical_protocol(spec: PreclinicalSpec) -> Protocol:
                        "rounds": [{"duration_s": d} for d in spec.rounds_s]}},
         ],
     })
-
-
-def stalled_seconds(t: np.ndarray, depth: np.ndarray, feeding: np.ndarray,
-                    until_s: float | None = None, window_s: float = STALL_WINDOW_S,
-                    gain_mm: float = STALL_GAIN_MM) -> float:
-    """Time (s) spent feeding before ``until_s`` (the first arrival at working length; None:
-    the whole run) at samples where the deepest point reached so far had grown by less than
-    ``gain_mm`` over the last ``window_s``. Samples evenly spaced in ``t`` (s)."""
-    t = np.asarray(t, float)
-    if len(t) < 2:
-        return 0.0
-    dt = float(t[1] - t[0])
-    deepest = np.maximum.accumulate(np.asarray(depth, float))
-    end = len(t) if until_s is None else int(np.searchsorted(t, until_s))
-    lag = max(1, round(window_s / dt))
-    idx = np.arange(lag, end)
-    gained = deepest[idx] - deepest[idx - lag]
-    stalled = (gained < gain_mm) & np.asarray(feeding, bool)[idx]
-    return float(stalled.sum()) * dt
 
 
 def run_phantom(spec: PreclinicalSpec) -> PhantomRun:

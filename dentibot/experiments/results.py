@@ -9,7 +9,7 @@ claims checked on them, and its result as one JSON-ready dict.
 
 ``progress(line)`` gets one line per finished run, in the calling thread. ``cancel``: a
 :class:`threading.Event` that, once set from another thread, stops the experiment as Ctrl-C
-does (see :func:`~dentibot.experiments.common.run_all`). Either way the experiment raises
+does (see :func:`~dentibot.app.batch.run_all`). Either way the experiment raises
 KeyboardInterrupt and returns no result.
 """
 
@@ -31,7 +31,9 @@ from dentibot.errors import ConfigError
 from dentibot.experiments import alignment as al
 from dentibot.experiments import patient_jerk as pj
 from dentibot.experiments import preclinical as pc
-from dentibot.experiments.common import Check, default_workers, run_all
+from dentibot.app import batch
+from dentibot.app.batch import default_workers, run_all
+from dentibot.experiments.common import Check
 from dentibot.protocol.schema import MATERIAL_NAMES
 
 #: Where the figures go unless told (alignment: its ``alignment`` folder; preclinical: one
@@ -256,7 +258,7 @@ def _preclinical_dict(runs: list[pc.PhantomRun], checks: list[Check], figures: l
             "completeness": "eq 6.1, (red before - red after) / red before, 0..1",
             "peak_torque_mnm": "largest true file torque (simulator), strength 62 mNm",
             "stalled_s": f"feeding before first reaching the working length while the deepest "
-                         f"point gained < {pc.STALL_GAIN_MM} mm in {pc.STALL_WINDOW_S:g} s",
+                         f"point gained < {batch.STALL_GAIN_MM} mm in {batch.STALL_WINDOW_S:g} s",
         },
         "thesis": {"table_6_5": {k: {"red_before_px": v[0], "red_after_px": v[1],
                                      "completeness": v[2], "fracture": v[3]}

@@ -63,13 +63,13 @@ async def arm_command(rt, est):
         await arm.move_joints_vel(_ZERO6)
         return _ZERO6
     tooth = rt.ctx.tooth
-    ff = None if tooth is None else tooth.feedforward_h(rt.r_0_6 @ rt.R_6_H)
+    tooth_ff = ff = None if tooth is None else tooth.feedforward_h(rt.r_0_6 @ rt.R_6_H)
     turn = axis_servo_twist(rt, est)
     if turn is not None and ff is None:   # a moving tooth bends the file too: not a tilt
         ff = turn
     cmd = admittance_command(rt.admittance, est.q_deg, est.wrench_h,
                              feed_force_n(mode, rt.ctx, rt.cfg.plan), rt.chain, ff)
-    bad = rt.supervisor.check_command(cmd.qdot_deg_s, cmd.twist, rt.speed_limits)
+    bad = rt.supervisor.check_command(cmd.qdot_deg_s, cmd.twist, rt.speed_limits, tooth_ff)
     if bad:
         rt.pending.extend(("fault", str(f)) for f in bad)
         await arm.move_joints_vel(_ZERO6)

@@ -224,7 +224,12 @@ class Supervisor:
                                                   f"{unit} below the margin {bound:.4f}{unit}"))
         return out
 
-    def check_command(self, qdot_deg_s, twist, speed_limits_deg_s) -> list[Finding]:
+    def check_command(self, qdot_deg_s, twist, speed_limits_deg_s,
+                      tooth_twist=None) -> list[Finding]:
+        """The joint rates against their limits, and the file tip's commanded speed against
+        the cap: relative to the tracked tooth when its motion is fed forward
+        (``tooth_twist``, hybrid control), since the cap protects the patient from the file,
+        and a file that moves with a jerking tooth is not fast for the tooth."""
         out: list[Finding] = []
         if isinstance(qdot_deg_s, np.ndarray):
             qdot_deg_s = qdot_deg_s.tolist()
@@ -232,8 +237,10 @@ class Supervisor:
             if abs(qdot_deg_s[i]) > speed_limits_deg_s[i] * (1.0 + 1e-9):
                 out.append(Finding("joint_speed", f"J{i + 1} commanded {qdot_deg_s[i]:.1f} "
                                                   f"deg/s > {speed_limits_deg_s[i]:.0f} deg/s"))
-        v = math.sqrt(float(twist[0]) ** 2 + float(twist[1]) ** 2 + float(twist[2]) ** 2)
+        rel = twist if tooth_twist is None else [twist[i] - tooth_twist[i] for i in range(3)]
+        v = math.sqrt(float(rel[0]) ** 2 + float(rel[1]) ** 2 + float(rel[2]) ** 2)
         if v > self.lim.tip_speed_cap_mm_s:
-            out.append(Finding("tip_speed", f"file tip commanded {v:.1f} mm/s > cap "
+            what = "" if tooth_twist is None else " relative to the tracked tooth"
+            out.append(Finding("tip_speed", f"file tip commanded {v:.1f} mm/s{what} > cap "
                                             f"{self.lim.tip_speed_cap_mm_s} mm/s"))
         return out

@@ -12,7 +12,7 @@ import structlog
 from dentibot.control.feedrate import FILE_STRENGTH_MNM
 from dentibot.experiments import alignment as al
 from dentibot.experiments import preclinical as pc
-from dentibot.experiments.common import run_all
+from dentibot.app.batch import run_all
 
 pytestmark = pytest.mark.timeout(120)
 

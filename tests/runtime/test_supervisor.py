@@ -110,3 +110,19 @@ def test_a_force_jump_is_measured_on_the_largest_component():
     assert s.check_inputs(1, *samples(1, force=(-13.0, 2.0, 11.0))) == []    # 14 N each
     f = s.check_inputs(2, *samples(2, force=(-13.0, -13.5, 11.0)))           # 15.5 N in y
     assert kinds(f) == ["ft_jump"] and "15.5 N" in f[0].detail
+
+
+def test_the_tip_speed_cap_holds_relative_to_a_tracked_tooth():
+    """Hybrid control: the file follows a tooth jerking at 40 mm/s; commanded 56 mm/s in the
+    base frame, it moves 16 mm/s relative to the tooth, under the 50 mm/s cap. The same
+    command without a tracked tooth is over the cap."""
+    from dentibot.runtime.supervisor import Supervisor
+
+    sup = Supervisor({}, 0.002)
+    limits = [1000.0] * 6
+    twist = [56.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    assert [f.kind for f in sup.check_command([0.0] * 6, twist, limits)] == ["tip_speed"]
+    assert sup.check_command([0.0] * 6, twist, limits, [40.0, 0.0, 0.0, 0.0, 0.0, 0.0]) == []
+    far = [-15.0, 0.0, 0.0, 0.0, 0.0, 0.0]            # the file against the tooth: 71 mm/s
+    found = sup.check_command([0.0] * 6, twist, limits, far)
+    assert len(found) == 1 and "relative to the tracked tooth" in found[0].detail
