@@ -18,14 +18,15 @@ from dentibot.runtime.estimate import Devices
 from dentibot.sim.devices import make_devices
 from dentibot.sim.faults import Jerk
 from dentibot.sim.tracker_device import SimPatientTracker, TrackerSimParams
-from dentibot.sim.patient import SQUARE_MM, StewartSquare
+from dentibot.sim.patient import JAW_HINGE_MM, SQUARE_MM, StewartSquare, jaw_hinge
 from dentibot.sim.serve import ServePorts, VirtualDentiBot
 from dentibot.sim.world import World, WorldConfig
 
 #: The parts of the simulated world that workflows set up themselves (experiment 1's Stewart
 #: platform square, a patient's jerk), handed on so that nothing above this layer imports the simulator.
-__all__ = ["Jerk", "SQUARE_MM", "StewartSquare", "Truth", "World", "WorldConfig", "plan_config",
-           "serve_wire", "sim_devices", "tool_geometry_of", "true_gravity_model"]
+__all__ = ["JAW_HINGE_MM", "Jerk", "SQUARE_MM", "StewartSquare", "Truth", "World", "WorldConfig",
+           "jaw_hinge", "plan_config", "serve_wire", "sim_devices", "tool_geometry_of",
+           "true_gravity_model"]
 
 
 def tool_geometry_of(world: World) -> ToolGeometry:

@@ -1,5 +1,5 @@
-"""The protocol's steps on a running procedure: what ``calibrate_load``, ``drag``, ``align``
-and ``drill`` do.
+"""The protocol's steps on a running procedure: what ``calibrate_load``,
+``calibrate_tracker``, ``drag``, ``align`` and ``drill`` do.
 
 One :class:`StepExecutor` serves both the protocol runner (unattended: a refused command
 faults the runtime and the run ends) and the interactive session (a refused command ends the
@@ -14,11 +14,18 @@ import dataclasses
 from collections.abc import Callable
 
 from dentibot.app.procedure import RETRACT_TIMEOUT_S, Procedure
+from dentibot.app.tracker_calibration import (
+    TrackerCalibration,
+    TrackerCalibrationParams,
+    calibrate_tracker,
+)
 from dentibot.control.admittance import EXPERIMENT_1
 from dentibot.control.canal_axis import AxisServoParams
 from dentibot.control.feedrate import FeedrateParams
+from dentibot.errors import ConfigError, DentibotError
 from dentibot.runtime.config import TreatmentPlan
 from dentibot.runtime.control_task import Runtime
+from dentibot.runtime.tooth import ToothFrame
 from dentibot.states.strategies import StrategyParams
 
 #: Longest time a single pass may take before the runner stops waiting (simulated s).
@@ -26,7 +33,7 @@ PASS_TIMEOUT_S = 600.0
 #: Thesis 5.3: spindle speed 60 rpm.
 DRILLING_RPM = 60.0
 #: The step kinds of a protocol, each a method of :class:`StepExecutor`.
-STEP_KINDS = ("calibrate_load", "drag", "align", "drill")
+STEP_KINDS = ("calibrate_load", "calibrate_tracker", "drag", "align", "drill")
 
 
 class Aborted(Exception):
@@ -81,6 +88,8 @@ class StepExecutor:
         self.rt = proc.runtime
         self.world = proc.world
         self._aborted = aborted
+        #: the last ``calibrate_tracker`` step's result (None before one ran)
+        self.tracker_calibration: TrackerCalibration | None = None
 
     async def step(self, kind: str, spec) -> None:
         """Run one step of kind ``kind`` (one of :data:`STEP_KINDS`)."""
@@ -117,6 +126,54 @@ class StepExecutor:
     async def calibrate_load(self, spec) -> None:
         await self.command("calibrate_load")
         await self.run_for(60.0, until=lambda r: not r.treatment.in_state("calibrating"))
+
+    async def calibrate_tracker(self, spec) -> None:
+        """The tracker's anchors identified on the set-up
+        (:func:`~dentibot.app.tracker_calibration.calibrate_tracker`), the result kept in
+        :attr:`tracker_calibration` and recorded as a ``tracker_calibration`` event (the
+        report and the anchors in the device file's format). When every string passes, the
+        identified anchors replace the runtime's for the rest of the procedure; a failed
+        calibration (bounds, identifiability, a pose not reached, the clamp moving) is a
+        fault naming why, as a refused command is. Refused (ConfigError) without a tracker."""
+        rt, proc = self.rt, self.proc
+        if rt.dev.tracker is None or rt.cfg.tooth is None:
+            raise ConfigError("patient.tracker", False, "a patient tracker: the calibration "
+                              "identifies its anchors (set patient.tracker: true)")
+        params = TrackerCalibrationParams(rotation_deg=spec.rotation_deg,
+                                          translation_mm=spec.translation_mm)
+        try:
+            result = await calibrate_tracker(proc, params=params, aborted=self._aborted)
+        except DentibotError as exc:
+            if self._aborted():
+                raise Aborted from exc
+            if rt.state != "fault":
+                await self._fault(f"tracker calibration: {exc}")
+            return
+        self.tracker_calibration = result
+
+        def apply() -> None:
+            rt.note("tracker_calibration", result.report())
+            if not result.ok:
+                return
+            tooth = dataclasses.replace(rt.cfg.tooth, geometry=result.geometry,
+                                        start_pose=result.poses[0])
+            rt.cfg = dataclasses.replace(rt.cfg, tooth=tooth)
+            rt.ctx.tooth = ToothFrame(tooth, rt.ts)
+
+        await proc.call(apply)
+        if not result.ok:
+            why = "; ".join(f"string {s.string}: {s.why}" for s in result.strings if not s.ok)
+            await self._fault(f"tracker calibration failed: {why}")
+
+    async def _fault(self, cause: str) -> None:
+        """The latched fault, its cause the protocol step's."""
+        rt = self.rt
+
+        async def fault() -> None:
+            await rt.command("fault")
+            rt.treatment.fault_causes[-1] = f"protocol step: {cause}"
+
+        await self.proc.call(fault)
 
     async def drag(self, spec) -> None:
         await self.command("drag", already="dragging")

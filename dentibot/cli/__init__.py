@@ -16,13 +16,14 @@ def _configure_logging(args: argparse.Namespace) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from dentibot.cli import experiment, fk, plot, recover, report, run, selftest, session, sim
-    from dentibot.cli import trial
+    from dentibot.cli import tracker, trial
 
     parser = argparse.ArgumentParser(prog="dentibot", description="The dentibot command line.")
     parser.add_argument("--version", action="version", version=f"dentibot {__version__}")
     _logging_options(parser, top=True)
     sub = parser.add_subparsers(dest="command")
-    for command in (run, sim, experiment, session, selftest, fk, report, recover, plot, trial):
+    for command in (run, sim, experiment, session, selftest, fk, report, recover, plot, trial,
+                    tracker):
         command.add_parser(sub)
     _logging_options_everywhere(parser)
     return parser

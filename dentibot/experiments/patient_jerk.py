@@ -5,7 +5,7 @@ The tooth steps ``mm`` (default 3 mm) along the canal axis towards the robot at 
 length, on the built-in simulator (the default canal, working length 16 mm). With ``deg``
 (default 0) the patient also turns by ``deg`` in step with the jerk, about the jaw's hinge:
 an axis across the canal through a point :data:`HINGE_MM` beyond the orifice along the
-canal (:func:`hinge`), so that the tooth tilts and its part around the file moves sideways
+canal (:func:`~dentibot.sim.patient.jaw_hinge`), so that the tooth tilts and its part around the file moves sideways
 (5 deg: the orifice 5.2 mm, the working length's point 3.8 mm). Three modes run the same
 motion:
 
@@ -38,7 +38,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
-from dentibot.app.simulated import Jerk
+from dentibot.app.simulated import JAW_HINGE_MM, Jerk, jaw_hinge
 from dentibot.app.batch import run_protocol
 from dentibot.experiments.common import Check
 from dentibot.protocol.loader import parse_protocol
@@ -46,10 +46,8 @@ from dentibot.protocol.loader import parse_protocol
 MODES = ("force", "tracked", "hybrid")
 #: How close to the working length (mm) the measured depth is when the jerk starts.
 NEAR_WL_MM = 0.3
-#: The jaw's hinge: this far (mm) beyond the orifice along the canal. assumption: the
-#: mandible's condyle and the head's nodding axis are 60 to 100 mm from a molar; the nearer
-#: end makes the tilt felt most at the file.
-HINGE_MM = 60.0
+#: The jaw's hinge: this far (mm) beyond the orifice along the canal (the simulator's).
+HINGE_MM = JAW_HINGE_MM
 #: Largest turn (deg) the experiment takes.
 MAX_DEG = 30.0
 
@@ -89,18 +87,6 @@ class JerkRun:
         return asdict(self)
 
 
-def hinge(orifice, axis) -> tuple[tuple, tuple]:
-    """The jaw's hinge for a tooth whose canal starts at ``orifice`` along the unit ``axis``
-    (both {0}): its centre, :data:`HINGE_MM` beyond the orifice along the canal, and its
-    unit axis across the canal (``axis`` x base x, or x base y when the canal lies along x)."""
-    a = [float(x) for x in axis]
-    e = (1.0, 0.0, 0.0) if abs(a[0]) < 0.9 else (0.0, 1.0, 0.0)
-    n = (a[1] * e[2] - a[2] * e[1], a[2] * e[0] - a[0] * e[2], a[0] * e[1] - a[1] * e[0])
-    k = math.sqrt(sum(x * x for x in n))
-    return (tuple(float(orifice[i]) + HINGE_MM * a[i] for i in range(3)),
-            tuple(x / k for x in n))
-
-
 def axis_angle_deg(u, v) -> float:
     """The angle (deg) between the directions ``u`` and ``v``."""
     dot = sum(a * b for a, b in zip(u, v))
@@ -130,7 +116,7 @@ def run_jerk(spec: JerkSpec) -> JerkRun:
             if depth is not None and depth >= wl - NEAR_WL_MM and row["state"].startswith(
                     "treating.drilling"):
                 orifice, axis = w.canal_axis_0()
-                centre, turn_axis = hinge(orifice, axis)
+                centre, turn_axis = jaw_hinge(orifice, axis)
                 w.motion = Jerk(w.motion, w.t, tuple(-x for x in axis), mm=spec.mm,
                                 mm_s=spec.mm_s, deg=spec.deg, axis=turn_axis,
                                 centre_mm=centre)

@@ -153,8 +153,10 @@ class PhantomSpec(Strict):
 
 
 class PatientSpec(Strict):
-    motion: Literal["static", "square", "head"] = Field(
-        "static", description="phantom motion: none, thesis experiment 1 square, head sway")
+    motion: Literal["static", "square", "head", "tremor", "swallowing", "patient"] = Field(
+        "static", description="phantom motion: none, thesis experiment 1 square, head sway, "
+        "tremor (8-12 Hz), swallowing (a 3 mm, 3 deg bump towards the robot about once a "
+        "minute), or patient (head sway, tremor and swallows together)")
     tracker: bool = Field(
         False, description="measure depth in the tooth's frame with the patient tracker (the "
                            "built-in simulator adds a simulated one; on devices the device "
@@ -203,6 +205,20 @@ class CalibrateLoadStep(Strict):
     pass
 
 
+class CalibrateTrackerStep(Strict):
+    """Identify the patient tracker's anchors on the set-up
+    (:mod:`dentibot.app.tracker_calibration`): with the file out of the canal and the clamp
+    held still, the arm turns the handpiece about the file tip and moves it away and sideways
+    through fourteen poses; the anchors found replace the device file's for the rest of the
+    run, and are recorded (event ``tracker_calibration``) in the device file's format. Needs
+    ``patient.tracker``."""
+
+    rotation_deg: float = Field(10.0, ge=2.0, le=15.0,
+                                description="turn about each of two axes at the file tip (deg)")
+    translation_mm: float = Field(5.0, ge=1.0, le=10.0,
+                                  description="move away from the tooth and sideways (mm)")
+
+
 class DragStep(Strict):
     duration_s: float = Field(2.0, gt=0.0, le=600.0, description="how long (s)")
     hand_force_n: tuple[HandN, HandN, HandN] = Field((0.0, 0.0, 0.0),
@@ -246,15 +262,16 @@ class DrillStep(Strict):
     min_rounds: int = Field(10, ge=1, le=100, description="reversal strategy rounds/section")
 
 
-StepName = Literal["calibrate_load", "drag", "align", "drill"]
-STEP_MODELS = {"calibrate_load": CalibrateLoadStep, "drag": DragStep, "align": AlignStep,
-               "drill": DrillStep}
+StepName = Literal["calibrate_load", "calibrate_tracker", "drag", "align", "drill"]
+STEP_MODELS = {"calibrate_load": CalibrateLoadStep, "calibrate_tracker": CalibrateTrackerStep,
+               "drag": DragStep, "align": AlignStep, "drill": DrillStep}
 
 
 class Step(Strict):
     """One step: exactly one of the keys below."""
 
     calibrate_load: CalibrateLoadStep | None = None
+    calibrate_tracker: CalibrateTrackerStep | None = None
     drag: DragStep | None = None
     align: AlignStep | None = None
     drill: DrillStep | None = None
@@ -340,7 +357,12 @@ class Protocol(Strict):
                               if s.kind == "calibrate_load"), None)
         for i, step in enumerate(self.steps):
             spec = step.spec
-            if calibrated_at is not None and i < calibrated_at and step.kind != "calibrate_load":
+            if step.kind == "calibrate_tracker" and not self.patient.tracker:
+                out.append((("steps", i, step.kind),
+                            "patient.tracker = False: the tracker calibration needs the "
+                            "patient tracker (set patient.tracker: true)"))
+            if calibrated_at is not None and i < calibrated_at and step.kind not in (
+                    "calibrate_load", "calibrate_tracker"):   # position moves, no force law
                 out.append((("steps", i, step.kind),
                             f"comes before the load calibration (step {calibrated_at + 1}): "
                             "force control needs the load identified first"))

@@ -108,12 +108,12 @@ class Runtime:
         reset out of ``fault`` also brings every device back to ready, or faults again."""
         was_fault = self.state == "fault"
         refusal = await self.treatment.fire(trigger, "operator" if trigger == "fault" else None)
-        self._note("command", trigger if refusal is None else str(refusal))
+        self.note("command", trigger if refusal is None else str(refusal))
         if refusal is None and was_fault and trigger == "reset":
             cause = await recover_all(self.dev.motor, self.dev.arm, self.dev.aux)
             if cause is not None:
                 await self.treatment.fire("fault", cause)
-                self._note("fault", cause)
+                self.note("fault", cause)
         return refusal
 
     async def estop(self, cause: str = "software emergency stop") -> None:
@@ -121,7 +121,7 @@ class Runtime:
         the latched fault; only ``reset`` leaves it."""
         await self.stop_devices()
         await self.treatment.fire("fault", cause)
-        self._note("fault", cause)
+        self.note("fault", cause)
 
     async def stop_devices(self) -> None:
         """File and arm stopped at once, bounded (:func:`~dentibot.runtime.actuate.stop_all`)."""
@@ -194,7 +194,7 @@ class Runtime:
             events.extend(self.behaviours[tr.state].detect(self.ctx, self, est))
         for trigger, cause in events:
             if trigger in NOTES:              # worth recording, not a transition
-                self._note(trigger, cause or "")
+                self.note(trigger, cause or "")
                 if trigger == "file_stopped":
                     await self.dev.motor.stop()
                     self.file_cmd = ("stop",)
@@ -202,7 +202,7 @@ class Runtime:
             if trigger == "fault" and tr.latched(cause):
                 continue
             refusal = await tr.fire(trigger, cause)
-            self._note(trigger, (cause or "") if refusal is None else str(refusal))
+            self.note(trigger, (cause or "") if refusal is None else str(refusal))
         # 4. entry actions, 5. control law and commands; a device error latches the fault now
         qdot = None
         try:
@@ -214,7 +214,7 @@ class Runtime:
             qdot, cause = None, f"device_command: {type(exc).__name__}: {exc}"
             events.append(("fault", cause))
             await tr.fire("fault", cause)
-            self._note("fault", cause)
+            self.note("fault", cause)
             await self._enter(tr.state, est)
         # 6. telemetry: every tick, also when the inputs failed (then the last valid estimate
         # is repeated and the row's events say "inputs_invalid")
@@ -289,7 +289,7 @@ class Runtime:
         self.behaviours[state].enter(self.ctx, self, est, prev)
         self.file_cmd = await send_file_command(self.dev.motor, mode, self.cfg, self.file_cmd)
 
-    def _note(self, kind: str, detail: str) -> None:
+    def note(self, kind: str, detail: str) -> None:
         self.events_log.append((self.ticks, kind, detail))
         if self.event_sink is not None:
             self.event_sink(self.ticks, kind, detail)

@@ -26,6 +26,8 @@ protected); before the file goes in it only makes the tooth pose unknown.
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,6 +42,17 @@ from dentibot.control.strings import (
 )
 from dentibot.control.depth import depth_along
 from dentibot.runtime.finding import Finding
+
+
+#: The tooth's velocities are differences over this many control periods (16 ms at 500 Hz).
+DIFF_TICKS = 8
+#: How fast a patient's head can move the tooth (assumption: a startle or a jerk of the
+#: head, 200 mm/s and 200 deg/s), and the pose's noise on top (mm, deg): a pose further from
+#: the last one seen than that in the time between is another solution of the same lengths.
+MAX_TOOTH_MM_S = 200.0
+MAX_TOOTH_DEG_S = 200.0
+JUMP_MM = 0.5
+JUMP_DEG = 3.0
 
 
 @dataclass(frozen=True)
@@ -79,12 +92,15 @@ class ToothFrame:
         self.velocity_0: np.ndarray | None = None   # the orifice's velocity (mm/s), filtered
         self.omega_0: np.ndarray | None = None      # the tooth's turning rate (rad/s), filtered
         self._o_prev: np.ndarray | None = None
-        self._r_prev: np.ndarray | None = None      # 0R_T of the previous tick
+        self._hist: deque = deque()                 # (orifice, 0R_T) of the last ticks
         self.point_0: np.ndarray | None = None      # the file tip of the last tick ({0}, mm)
         self.pose_mt: np.ndarray | None = None      # MT_T of the last good tick
         self.pose_0t: np.ndarray | None = None      # 0T_T of the last good tick
         self.residual_mm = float("nan")
-        self._previous_mm = None                    # the last good lengths (jump check)
+        self._previous_mm = None                    # the last sample's lengths (jump check)
+        self._lost = False                          # the last sample could not be trusted
+        self._last_0t: np.ndarray | None = None     # 0T_T last seen (kept while lost)
+        self._last_t = 0.0                          # when (s, the samples' time)
         self._ref_t: tuple[np.ndarray, np.ndarray] | None = None   # (orifice, axis) in {T}
 
     @property
@@ -96,28 +112,62 @@ class ToothFrame:
         when the strings cannot be trusted (the pose is then unknown)."""
         c = self.cfg
         bad = check_lengths(sample.lengths_mm, c.limits, previous_mm=self._previous_mm)
+        # the next sample is checked against this one, good or not: a jump is one sample's
+        # finding, not every sample's after it (a load calibration swings the mount by tens
+        # of millimetres; the strings are back in range and consistent once it ends)
+        if np.isfinite(sample.lengths_mm).all():
+            self._previous_mm = sample.lengths_mm
         if bad or not sample.ok:
             self.pose_0t = None
+            self._lost = True
             why = "; ".join(f"string {f.string + 1}: {f.message or f.kind}" for f in bad) or \
                 f"tracker status {sample.status}"
             return Finding("tracker", why)
-        if self.pose_mt is None:
-            est = forward(c.geometry, sample.lengths_mm, c.start_pose, sigma_mm=c.sigma_mm)
-            pose, res = est.pose, est.rms_mm
+        t0m = np.eye(4)
+        t0m[:3, :3] = r_0_6
+        t0m[:3, 3] = p_0_6
+        t0m = t0m @ c.mount_in_flange                 # 0T_M: the mount moves with the flange
+        # the guess: the tooth where it was last seen in {0}, seen from the mount now (the
+        # arm's own motion is known; only the patient's is left to the strings)
+        if self._last_0t is not None:
+            guess = np.linalg.solve(t0m, self._last_0t)
         else:
-            pose, res = track(c.geometry, sample.lengths_mm, self.pose_mt, iterations=1)
+            guess = c.start_pose if self.pose_mt is None else self.pose_mt
+        lim = c.limits.max_residual_mm
+        res = math.inf
+        if self.pose_mt is not None and not self._lost:
+            pose, res = track(c.geometry, sample.lengths_mm, guess, iterations=1)
+        if not res <= lim:
+            # a full solve from the prediction: one Gauss-Newton step follows a tick's motion,
+            # not a lost stretch's nor a fast swing of the arm's
+            est = forward(c.geometry, sample.lengths_mm, guess, sigma_mm=c.sigma_mm)
+            pose, res = est.pose, est.rms_mm
         self.residual_mm = res
-        if not np.isfinite(res) or res > c.limits.max_residual_mm:
-            self.pose_0t = None
-            return Finding("tracker", f"the six string lengths disagree: rms residual "
-                                      f"{res:.3f} mm > {c.limits.max_residual_mm} mm")
-        self._previous_mm = sample.lengths_mm
+        if not res <= lim:
+            return self._lose(f"the six string lengths disagree: rms residual {res:.3f} mm > "
+                              f"{lim} mm")
+        t0t = t0m @ pose
+        if self._last_0t is not None:
+            # a patient moves the tooth so far in the time since it was last seen, no further
+            # (a solve that lands elsewhere found another pose with the same six lengths)
+            dt = max(sample.t - self._last_t, 0.0)
+            dp = float(np.linalg.norm(t0t[:3, 3] - self._last_0t[:3, 3]))
+            da = math.degrees(Rotation.from_matrix(t0t[:3, :3] @ self._last_0t[:3, :3].T)
+                              .magnitude())
+            if dp > JUMP_MM + MAX_TOOTH_MM_S * dt or da > JUMP_DEG + MAX_TOOTH_DEG_S * dt:
+                return self._lose(f"the tooth's pose jumped {dp:.2f} mm, {da:.1f} deg in "
+                                  f"{dt * 1e3:.0f} ms (a patient's head moves at most "
+                                  f"{MAX_TOOTH_MM_S:g} mm/s, {MAX_TOOTH_DEG_S:g} deg/s)")
+        self._lost = False
         self.pose_mt = pose
-        t06 = np.eye(4)
-        t06[:3, :3] = r_0_6
-        t06[:3, 3] = p_0_6
-        self.pose_0t = t06 @ c.mount_in_flange @ pose
+        self.pose_0t = self._last_0t = t0t
+        self._last_t = sample.t
         return None
+
+    def _lose(self, why: str) -> Finding:
+        self.pose_0t = None
+        self._lost = True
+        return Finding("tracker", why)
 
     def tick(self, sample, chain, ctx, est) -> Finding | None:
         """Step 2 with a tracker: the tooth's pose from ``sample`` and the tick's kinematic
@@ -140,20 +190,27 @@ class ToothFrame:
     def _track_velocity(self, o: np.ndarray, r_0_t: np.ndarray | None = None) -> None:
         """The tooth's velocities from this tick's orifice ``o`` ({0}, mm) and orientation
         ``r_0_t`` (0R_T; None: the orientation is not tracked), by finite differences over
-        one period, through first-order low-passes of time constants ``velocity_tau_s``
-        and ``rotation_tau_s`` (:meth:`feedforward_h`)."""
-        if self._o_prev is not None:
-            raw = (o - self._o_prev) / self.ts
+        ``DIFF_TICKS`` periods, through first-order low-passes of time constants
+        ``velocity_tau_s`` and ``rotation_tau_s`` (:meth:`feedforward_h`).
+
+        The tooth's pose in {0} is the arm's (from its encoders, quantised to 0.001 deg: a few
+        micrometres at the mount) times the strings'. A difference over one 2 ms period
+        turns those micrometres into mm/s while the arm moves (8-22 mm/s and up to 30 deg/s
+        of a still tooth measured during an alignment); over ``DIFF_TICKS`` periods the
+        bounded quantisation error is divided by that many."""
+        hist = self._hist
+        hist.append((o, None if r_0_t is None else np.array(r_0_t, float)))
+        if len(hist) > DIFF_TICKS:
+            o0, r0 = hist.popleft()
+            span = DIFF_TICKS * self.ts
+            raw = (o - o0) / span
             v = self.velocity_0
             self.velocity_0 = raw if v is None else v + self._alpha * (raw - v)
+            if r_0_t is not None and r0 is not None:
+                raw = Rotation.from_matrix(r_0_t @ r0.T).as_rotvec() / span
+                w = self.omega_0
+                self.omega_0 = raw if w is None else w + self._alpha_w * (raw - w)
         self._o_prev = o
-        if r_0_t is None:
-            return
-        if self._r_prev is not None:
-            raw = Rotation.from_matrix(r_0_t @ self._r_prev.T).as_rotvec() / self.ts
-            w = self.omega_0
-            self.omega_0 = raw if w is None else w + self._alpha_w * (raw - w)
-        self._r_prev = np.array(r_0_t, float)
 
     def feedforward_h(self, r_0_h: np.ndarray, point_0=None) -> np.ndarray | None:
         """Hybrid control's feedforward: the tooth's rigid motion as a twist in {H} axes
@@ -199,7 +256,8 @@ class ToothFrame:
 
     def forget(self) -> None:
         self._ref_t = None
-        self.velocity_0 = self._o_prev = self.omega_0 = self._r_prev = self.point_0 = None
+        self.velocity_0 = self._o_prev = self.omega_0 = self.point_0 = None
+        self._hist.clear()
 
     def reference_0(self) -> tuple[tuple, tuple] | None:
         """The registered reference mapped into {0} with the tooth's pose now."""

@@ -38,6 +38,7 @@ import math
 from dentibot.errors import DeviceFault
 from dentibot.io.interfaces import WRENCH_SATURATED, Wrench
 from dentibot.sim.arm import ERROR_JOINT_LIMIT
+from dentibot.sim.patient import axis_angle_matrix
 from dentibot.sim.world import World
 
 FAULTS = ("ft_packet_loss", "ft_delay", "ft_stream_stop", "ft_nan", "ft_saturation",
@@ -64,6 +65,8 @@ class Jerk:
         self.duration_s = mm / mm_s if mm > 0 else (abs(deg) / deg_s if deg else 0.0)
         if deg:
             self.rotation_at = self._rotation_at
+        elif hasattr(base, "rotation_at"):    # a turning patient keeps turning under the jerk
+            self.rotation_at = base.rotation_at
 
     def _progress(self, t: float) -> float:
         if self.duration_s <= 0.0:
@@ -76,14 +79,9 @@ class Jerk:
         return (b[0] + s * self.d[0], b[1] + s * self.d[1], b[2] + s * self.d[2])
 
     def _rotation_at(self, t: float):
-        """(R, centre): the turn so far (Rodrigues' formula about ``axis``)."""
-        th = math.radians(self.deg * self._progress(t))
-        c, s, (x, y, z) = math.cos(th), math.sin(th), self.axis
-        k = 1.0 - c
-        R = ((c + x * x * k, x * y * k - z * s, x * z * k + y * s),
-             (y * x * k + z * s, c + y * y * k, y * z * k - x * s),
-             (z * x * k - y * s, z * y * k + x * s, c + z * z * k))
-        return R, self.centre
+        """(R, centre): the turn so far about ``axis``."""
+        return axis_angle_matrix(self.axis, math.radians(self.deg * self._progress(t))), \
+            self.centre
 
 
 class _Wrapped:

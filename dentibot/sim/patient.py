@@ -1,4 +1,5 @@
-"""Patient / phantom motion profiles: offset (mm, base-frame axes) of the phantom vs time.
+"""Patient / phantom motion profiles: offset (mm, base-frame axes) of the phantom vs time,
+and for a patient's 6-DoF motion also a turn about the jaw's hinge (``rotation_at``).
 
 Platform axes are taken parallel to the robot base axes (assumption: the Stewart platform is
 set up square to the robot).
@@ -6,6 +7,7 @@ set up square to the robot).
 
 from __future__ import annotations
 
+import bisect
 import itertools
 import math
 from typing import Protocol
@@ -151,3 +153,155 @@ class BenchSquarePath:
         x, y, z = self.stewart_mm(t)
         ex, ey = self.ex, self.ey
         return (x * ex[0] + y * ey[0], x * ex[1] + y * ey[1], z)
+
+
+# ---------------------------------------------------------------------------- the jaw
+#: The jaw's hinge: this far (mm) beyond a canal's orifice along the canal. assumption: the
+#: mandible's condyles and the head's nodding axis are 60 to 100 mm from a molar; the nearer
+#: end makes a turn felt most at the file.
+JAW_HINGE_MM = 60.0
+
+
+def jaw_hinge(orifice, axis) -> tuple[tuple, tuple]:
+    """The jaw's hinge for a tooth whose canal starts at ``orifice`` along the unit ``axis``
+    (both {0}): its centre, :data:`JAW_HINGE_MM` beyond the orifice along the canal, and its
+    unit axis across the canal (``axis`` x base x, or x base y when the canal lies along x)."""
+    a = [float(x) for x in axis]
+    e = (1.0, 0.0, 0.0) if abs(a[0]) < 0.9 else (0.0, 1.0, 0.0)
+    n = (a[1] * e[2] - a[2] * e[1], a[2] * e[0] - a[0] * e[2], a[0] * e[1] - a[1] * e[0])
+    k = math.sqrt(sum(x * x for x in n))
+    return (tuple(float(orifice[i]) + JAW_HINGE_MM * a[i] for i in range(3)),
+            tuple(x / k for x in n))
+
+
+def axis_angle_matrix(axis, rad: float) -> tuple:
+    """The rotation by ``rad`` about the unit ``axis`` (Rodrigues' formula), as nested tuples
+    (a tick's worth of scalar maths, no array allocation)."""
+    c, s, (x, y, z) = math.cos(rad), math.sin(rad), axis
+    k = 1.0 - c
+    return ((c + x * x * k, x * y * k - z * s, x * z * k + y * s),
+            (y * x * k + z * s, c + y * y * k, y * z * k - x * s),
+            (z * x * k - y * s, z * y * k + x * s, c + z * z * k))
+
+
+class Tremor:
+    """Physiological tremor of the head and jaw: per axis a sum of sinusoids at seeded
+    frequencies in ``band_hz`` and phases, ``amplitude_mm`` rms per axis, and a turn about the
+    jaw's hinge of ``deg`` rms.
+
+    Physiological tremor lies at 8-12 Hz (Elble & Koller, Tremor, 1990), of the order of
+    10-50 um at an outstretched hand; the head, far heavier, moves less: assumption 0.01 mm and
+    0.005 deg rms (5 um at a molar 60 mm from the hinge). A file held 10 mm deep in a canal
+    is laterally stiff (several N/mm near the shank), so even this reaches the force sensor.
+    """
+
+    def __init__(self, rng: np.random.Generator, amplitude_mm: float = 0.01,
+                 deg: float = 0.005, band_hz=(8.0, 12.0), n_components: int = 3) -> None:
+        lo, hi = band_hz
+        w = rng.uniform(lo, hi, (4, n_components)) * 2.0 * math.pi
+        ph = rng.uniform(0.0, 2.0 * math.pi, (4, n_components))
+        self._w, self._ph = w.tolist(), ph.tolist()
+        self._base = [[math.sin(p) for p in row] for row in self._ph]
+        k = math.sqrt(2.0 / n_components)
+        self.amp_mm, self.amp_rad = amplitude_mm * k, math.radians(deg) * k
+
+    def _wave(self, i: int, t: float) -> float:
+        return sum(math.sin(w * t + p) - b
+                   for w, p, b in zip(self._w[i], self._ph[i], self._base[i]))
+
+    def offset_mm(self, t: float) -> tuple[float, float, float]:
+        a = self.amp_mm
+        return (a * self._wave(0, t), a * self._wave(1, t), a * self._wave(2, t))
+
+    def angle_rad(self, t: float) -> float:
+        return self.amp_rad * self._wave(3, t)
+
+
+class Swallowing:
+    """Swallows at seeded times: each moves the tooth ``mm`` along ``direction`` and turns it
+    ``deg`` about the jaw's hinge, there and back in a raised-cosine bump of ``duration_s``.
+
+    An awake adult swallows about once a minute (Lear et al. 1965, Arch Oral Biol 10:83:
+    about 580 swallows a day awake), the pharyngeal phase lasting about a second (Logemann,
+    Evaluation and Treatment of Swallowing Disorders, 1998); the intervals are drawn
+    uniformly in ``every_s``. How far the tooth moves is an assumption: 3 mm and 3 deg, the
+    jaw closing towards the robot (the direction that takes a file past the working length).
+    """
+
+    def __init__(self, rng: np.random.Generator, every_s=(30.0, 90.0), mm: float = 3.0,
+                 deg: float = 3.0, duration_s: float = 1.0, horizon_s: float = 3600.0) -> None:
+        lo, hi = every_s
+        starts, t = [], 0.0
+        while True:
+            t += float(rng.uniform(lo, hi))
+            if t > horizon_s:
+                break
+            starts.append(t)
+        self.starts_s = tuple(starts)
+        self.mm, self.rad, self.duration_s = mm, math.radians(deg), duration_s
+        self.direction = (0.0, 0.0, 1.0)
+
+    def level(self, t: float) -> float:
+        """0 .. 1 .. 0 over each swallow (raised cosine), 0 between them."""
+        i = bisect.bisect_right(self.starts_s, t) - 1
+        if i < 0:
+            return 0.0
+        x = (t - self.starts_s[i]) / self.duration_s
+        return 0.5 - 0.5 * math.cos(2.0 * math.pi * x) if 0.0 <= x <= 1.0 else 0.0
+
+    def offset_mm(self, t: float) -> tuple[float, float, float]:
+        s = self.mm * self.level(t)
+        d = self.direction
+        return (s * d[0], s * d[1], s * d[2])
+
+    def angle_rad(self, t: float) -> float:
+        return self.rad * self.level(t)
+
+
+class PatientMotion:
+    """A patient's 6-DoF motion: the translations of ``parts`` (head sway, tremor, swallows)
+    summed, their turns summed about the jaw's hinge (``centre`` and unit ``axis``, {0}; the
+    angles are small, so summing them is turning by their sum). ``rotation_at(t)`` gives the
+    world (R, centre)."""
+
+    def __init__(self, parts, centre, axis) -> None:
+        self.parts = tuple(parts)
+        self._turning = tuple(p for p in self.parts if hasattr(p, "angle_rad"))
+        self.centre = tuple(float(x) for x in centre)
+        self.axis = tuple(float(x) for x in axis)
+
+    def offset_mm(self, t: float) -> tuple[float, float, float]:
+        x = y = z = 0.0
+        for p in self.parts:
+            a, b, c = p.offset_mm(t)
+            x, y, z = x + a, y + b, z + c
+        return (x, y, z)
+
+    def rotation_at(self, t: float):
+        return axis_angle_matrix(self.axis, sum(p.angle_rad(t) for p in self._turning)), \
+            self.centre
+
+
+#: The patient motions a world builds by name about its tooth (``WorldConfig.motion``).
+PATIENT_MOTIONS = ("tremor", "swallowing", "patient")
+
+
+def patient_motion(kind: str, rng: np.random.Generator, orifice, canal_axis) -> PatientMotion:
+    """``tremor``, ``swallowing``, or ``patient`` (head sway, tremor and swallows together)
+    for a tooth whose canal starts at ``orifice`` along ``canal_axis`` ({0}); seeded by
+    ``rng``. Swallows move the tooth towards the robot along the canal."""
+    centre, axis = jaw_hinge(orifice, canal_axis)
+    r_head, r_tremor, r_swallow = (np.random.default_rng(s) for s in
+                                   np.random.SeedSequence(int(rng.integers(2**63))).spawn(3))
+    parts = []
+    if kind == "patient":
+        parts.append(HeadMotion(r_head))
+    if kind in ("tremor", "patient"):
+        parts.append(Tremor(r_tremor))
+    if kind in ("swallowing", "patient"):
+        sw = Swallowing(r_swallow)
+        sw.direction = tuple(-float(x) for x in canal_axis)
+        parts.append(sw)
+    if not parts:
+        raise ValueError(f"patient motion {kind!r}: one of {', '.join(PATIENT_MOTIONS)}")
+    return PatientMotion(parts, centre, axis)

@@ -22,7 +22,14 @@ from dentibot.sim.canal import Canal, CanalParams, Interaction
 from dentibot.sim.ftsensor import FTSensorModel, FTSensorParams
 from dentibot.sim.handpiece import HandpieceModel, HandpieceParams
 from dentibot.sim.nitifile import FileFractured, NiTiFile
-from dentibot.sim.patient import HeadMotion, MotionProfile, StaticPose, StewartSquare
+from dentibot.sim.patient import (
+    PATIENT_MOTIONS,
+    HeadMotion,
+    MotionProfile,
+    StaticPose,
+    StewartSquare,
+    patient_motion,
+)
 
 #: Control period (s), thesis 3.1 (500 Hz).
 TS = 0.002
@@ -54,7 +61,8 @@ class WorldConfig:
     #: {P} z along the file.
     phantom_pose: np.ndarray | None = None
     orifice_gap_mm: float = 2.0
-    #: "static", "square" (thesis experiment 1), "head" (random small motion) or a profile.
+    #: "static", "square" (thesis experiment 1), "head" (random small motion), "tremor",
+    #: "swallowing", "patient" (head sway, tremor and swallows: sim.patient) or a profile.
     motion: str | MotionProfile = "static"
 
 
@@ -82,6 +90,8 @@ class World:
             self.motion = StewartSquare()
         elif m == "head":
             self.motion = HeadMotion(np.random.default_rng(s_patient))
+        elif m in PATIENT_MOTIONS:
+            self.motion = StaticPose()         # until the tooth is placed (below)
         else:
             self.motion = m
         self.platform_mm = (0.0, 0.0, 0.0)    # commanded through AuxIO.set_platform
@@ -111,6 +121,9 @@ class World:
         self._RP = self.phantom_pose[:3, :3].tolist()
         self._pP = tuple(self.phantom_pose[:3, 3].tolist())
         self._RP0, self._pP0 = self._RP, self._pP     # before any rotation of the patient
+        if isinstance(m, str) and m in PATIENT_MOTIONS:   # about this tooth's jaw hinge
+            self.motion = patient_motion(m, np.random.default_rng(s_patient),
+                                         *self.canal_axis_0())
         self._sense()
 
     # ------------------------------------------------------------------ geometry

@@ -8,6 +8,7 @@ import json
 
 import pytest
 
+from dentibot.app.simulated import jaw_hinge
 from dentibot.cli import main
 from dentibot.control.feedrate import FILE_STRENGTH_MNM
 
@@ -49,7 +50,7 @@ def test_the_jaw_hinge_lies_along_the_canal_and_turns_it_across():
     from dentibot.experiments import patient_jerk as pj
 
     o, a = np.array([100.0, 0.0, 120.0]), np.array([0.0, 0.0, -1.0])
-    centre, axis = pj.hinge(o, a)
+    centre, axis = jaw_hinge(o, a)
     np.testing.assert_allclose(centre, o + 60.0 * a, atol=1e-12)
     assert abs(np.dot(axis, a)) < 1e-12 and np.linalg.norm(axis) == pytest.approx(1.0)
     R = Rotation.from_rotvec(np.radians(5.0) * np.array(axis)).as_matrix()
@@ -60,7 +61,7 @@ def test_the_jaw_hinge_lies_along_the_canal_and_turns_it_across():
     assert pj.axis_angle_deg(a, R @ a) == pytest.approx(5.0)
     assert pj.axis_angle_deg((1.0, 0.0, 0.0), (0.0, 2.0, 0.0)) == pytest.approx(90.0)
     # a canal along base x takes base y for the hinge's axis
-    _, axis_x = pj.hinge(o, (1.0, 0.0, 0.0))
+    _, axis_x = jaw_hinge(o, (1.0, 0.0, 0.0))
     assert abs(axis_x[0]) < 1e-12 and np.linalg.norm(axis_x) == pytest.approx(1.0)
 
 
