@@ -39,13 +39,14 @@ __all__ = ["Procedure", "WorldConfig", "dentibot_sim", "dentibot_wire", "simulat
 
 def simulated_procedure(world: World | WorldConfig | None = None,
                         config: RuntimeConfig | None = None, *,
-                        calibrated: bool = True, tracker=None) -> Procedure:
+                        calibrated: bool = True, tracker=None,
+                        hybrid: bool = False) -> Procedure:
     """A simulated procedure in lock-step time, driven by its waits, keeping its rows (what
     ``dentibot_sim`` builds), for helpers outside a fixture; ``tracker``: a simulated patient
     tracker's geometry (``dentibot.sim.tracker_device.TrackerSimParams``), depth then in the
-    tooth's frame."""
+    tooth's frame; ``hybrid``: the tracked tooth's motion fed forward too."""
     return Procedure.simulated(world, config, calibrated=calibrated, keep_rows=True,
-                               tracker=tracker)
+                               tracker=tracker, hybrid=hybrid)
 
 
 @pytest.fixture
@@ -53,8 +54,10 @@ async def dentibot_sim():
     """Factory of simulated procedures in lock-step time (see the module docstring)."""
     made: list[Procedure] = []
 
-    def make(world=None, config=None, *, calibrated: bool = True, tracker=None) -> Procedure:
-        proc = simulated_procedure(world, config, calibrated=calibrated, tracker=tracker)
+    def make(world=None, config=None, *, calibrated: bool = True, tracker=None,
+             hybrid: bool = False) -> Procedure:
+        proc = simulated_procedure(world, config, calibrated=calibrated, tracker=tracker,
+                                   hybrid=hybrid)
         made.append(proc)
         return proc
 

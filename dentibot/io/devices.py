@@ -19,6 +19,7 @@ home, velocity timeout as the dead-man). A failure closes what was opened, then 
 from __future__ import annotations
 
 import contextlib
+import gc
 import os
 from collections.abc import AsyncIterator, Mapping
 from dataclasses import dataclass
@@ -347,9 +348,18 @@ async def open_devices(cfg: DevicesConfig, *, home: bool = True,
     An arm found paused (a run that ended without parking it, an expired connection
     watchdog) is an error unless ``resume_arm``: resuming is the operator's decision, taken
     once the workspace is clear (:meth:`Meca500Driver.resume`, which refuses an arm in
-    error)."""
+    error).
+
+    What the process holds before the devices start is frozen out of the garbage collector's
+    sight first (``gc.freeze``; unfrozen on exit): from the drive's enable on, its heartbeat
+    consumer watches the host every 30 ms, and a full collection over a start-up heap (the
+    libraries a command imports) can pause the event loop longer than that, which the drive
+    rightly takes for a dead host."""
     a, f, h, x = cfg.arm, cfg.ft, cfg.handpiece, cfg.aux
+    gc.collect()
+    gc.freeze()
     async with contextlib.AsyncExitStack() as stack:
+        stack.callback(gc.unfreeze)
         ft = NetFTDriver(f.host, f.port, f.http_port, counts_per_force=f.counts_per_force,
                          counts_per_torque=f.counts_per_torque,
                          stale_after_s=f.stale_after_ms / 1000.0)

@@ -307,3 +307,30 @@ def test_the_tooth_is_found_again_after_the_arm_swings_away_and_back():
     np.testing.assert_allclose(tf.pose_0t[:3, 3], truth[:3, 3], atol=0.05)
     turn = Rotation.from_matrix(tf.pose_0t[:3, :3] @ truth[:3, :3].T).magnitude()
     assert np.degrees(turn) < 1.0
+
+
+@pytest.mark.parametrize("tracked", [False, True])
+async def test_an_axial_jerk_at_40_mm_s_breaks_no_file(tracked):
+    """The tooth jumps 3 mm towards the robot along the canal at 40 mm/s while the file is
+    8 mm in, turning (drilling), with and without the tracker (hybrid control): the file does
+    not break, and its true torque (the simulator's) stays under its 62 mNm strength. The
+    wrench norm peaks near the 1.5 N patient-moved trigger, too late to help: the file's
+    torque rise reverses it first, and the drive's current limit bounds it."""
+    from dentibot.control.feedrate import FILE_STRENGTH_MNM
+
+    h, rows = harness(seed=3, tracker=TrackerSimParams() if tracked else None,
+                      **({"hybrid": True} if tracked else {}))
+    w = h.world
+    await _drill_until_deep(h)
+    _, axis = w.canal_axis_0()
+    w.motion = Jerk(w.motion, w.t, tuple(-x for x in axis), mm=3.0, mm_s=40.0)
+    peak = 0.0
+
+    def watch(r) -> bool:
+        nonlocal peak
+        peak = max(peak, abs(w.handpiece.torque_mnm))
+        return r.state == "fault"
+
+    await h.run_for(ticks=500, until=watch)                # 1 s
+    assert w.fractured is None
+    assert 40.0 < peak < FILE_STRENGTH_MNM                 # loaded hard, and not past it
