@@ -16,9 +16,9 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "dentibot"
 
-#: Modules every layer may use: the version, the typed errors, the strict YAML reader and the
-#: logging set-up.
-BASE = {"dentibot", "dentibot.errors", "dentibot.yamlfile", "dentibot.logs"}
+#: Modules every layer may use: the version, the typed errors, the strict YAML reader, the
+#: logging set-up and JSON-safe values.
+BASE = {"dentibot", "dentibot.errors", "dentibot.yamlfile", "dentibot.logs", "dentibot.jsonsafe"}
 
 _BELOW_APP = {"runtime", "states", "control", "io", "protocol", "telemetry"}
 #: layer -> the layers it may import (its own always).

@@ -26,14 +26,15 @@ from typing import Any
 
 import numpy as np
 
+from dentibot.app import batch
+from dentibot.app.batch import default_workers, run_all
 from dentibot.control.feedrate import FILE_STRENGTH_MNM
 from dentibot.errors import ConfigError
 from dentibot.experiments import alignment as al
 from dentibot.experiments import patient_jerk as pj
 from dentibot.experiments import preclinical as pc
-from dentibot.app import batch
-from dentibot.app.batch import default_workers, run_all
 from dentibot.experiments.common import Check
+from dentibot.jsonsafe import finite as clean
 from dentibot.protocol.schema import MATERIAL_NAMES
 
 #: Where the figures go unless told (alignment: its ``alignment`` folder; preclinical: one
@@ -47,17 +48,6 @@ Progress = Callable[[str], None]
 
 
 # ---------------------------------------------------------------------------- helpers
-def clean(obj: Any) -> Any:
-    """JSON-safe: non-finite floats (a run that ended early has none to give) as null."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [clean(v) for v in obj]
-    return obj
-
-
 def _worst(values: Iterable[float | None]) -> float | None:
     vals = [v for v in values if v is not None and math.isfinite(v)]
     return max(vals) if vals else None

@@ -97,6 +97,7 @@ from mcap.records import DataEnd, Footer
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from dentibot.errors import ConfigError
+from dentibot.jsonsafe import finite as _finite
 from dentibot.telemetry.foxglove import (
     FOXGLOVE_TOPICS,
     SCENE_TOPIC,
@@ -173,19 +174,6 @@ def _without_none(obj: Any) -> Any:
         for v in obj.values():
             if v is None:
                 return {k: v for k, v in obj.items() if v is not None}
-    return obj
-
-
-def _finite(obj: Any) -> Any:
-    """``obj`` with every non-finite float replaced by None (numpy values converted)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if hasattr(obj, "tolist"):
-        return _finite(obj.tolist())
     return obj
 
 

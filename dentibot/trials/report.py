@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
+from dentibot.jsonsafe import finite as clean
 from dentibot.trials import fatigue
 from dentibot.trials.population import SCHNEIDER_CLASSES
 from dentibot.trials.spec import TrialSpec
@@ -113,17 +114,6 @@ def summarize(table: pa.Table, spec: TrialSpec) -> dict:
         arms.append(entry)
     return clean({"trial": spec.name, "seed": spec.seed, "spec_hash": spec.spec_hash(),
                   "procedures": len(rows), "rounds_s": list(spec.rounds_s), "arms": arms})
-
-
-def clean(obj):
-    """JSON-safe: non-finite floats as None."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [clean(v) for v in obj]
-    return obj
 
 
 def file_life_samples(table: pa.Table, spec: TrialSpec) -> dict[str, np.ndarray]:
