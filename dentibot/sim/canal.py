@@ -443,8 +443,16 @@ class Canal:
             pts.append((complex(ez[j]), float(net[j]), k, s_tip - float(s[j]), float(g[j])))
         npt = len(pts)
         sup = p.support_mm_per_n                         # the tooth moves as a body on it
-        c = [[f.compliance_mm_n(pts[i][3], pts[j][3]) + sup for j in range(npt)]
-             for i in range(npt)]
+        beam = f.beam
+        memo: dict = {}
+
+        def comp(i: int, j: int) -> float:                # c(i, j), computed when needed
+            k = (i, j) if i <= j else (j, i)
+            v = memo.get(k)
+            if v is None:
+                v = memo[k] = beam.compliance_mm_n(pts[k[0]][3], pts[k[1]][3]) + sup
+            return v
+
         normals = [e / abs(e) if abs(e) > 1e-9 else 0j for e, *_ in pts]
         active = [pts[i][1] > 0.0 and normals[i] != 0j for i in range(npt)]
         lam = [0.0] * npt
@@ -453,11 +461,11 @@ class Canal:
             lam = [0.0] * npt
             if len(idx) == 1:
                 i = idx[0]
-                lam[i] = pts[i][1] / (1.0 / pts[i][2] + c[i][i])
+                lam[i] = pts[i][1] / (1.0 / pts[i][2] + comp(i, i))
             elif len(idx) == 2:
                 i, j = idx
-                cij = c[i][j] * (normals[i] * normals[j].conjugate()).real
-                a00, a11 = 1.0 / pts[i][2] + c[i][i], 1.0 / pts[j][2] + c[j][j]
+                cij = comp(i, j) * (normals[i] * normals[j].conjugate()).real
+                a00, a11 = 1.0 / pts[i][2] + comp(i, i), 1.0 / pts[j][2] + comp(j, j)
                 det = a00 * a11 - cij * cij
                 lam[i] = (a11 * pts[i][1] - cij * pts[j][1]) / det
                 lam[j] = (a00 * pts[j][1] - cij * pts[i][1]) / det
@@ -469,7 +477,7 @@ class Canal:
             for i in range(npt):
                 if active[i]:
                     continue
-                w = sum((-lam[k] * normals[k] * c[i][k] for k in idx), 0j)
+                w = sum((-lam[k] * normals[k] * comp(i, k) for k in idx), 0j)
                 e = pts[i][0] + w
                 if abs(e) + pts[i][4] > 0.0 and abs(e) > 1e-9:   # bent into the wall
                     normals[i] = e / abs(e)
