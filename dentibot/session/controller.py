@@ -30,6 +30,7 @@ import structlog
 from dentibot.app.procedure import Procedure
 from dentibot.app.runner import runtime_config, world_config
 from dentibot.app.steps import StepExecutor, align_plan
+from dentibot.app.tracker_calibration import START_STATES as CALIBRATION_START_STATES
 from dentibot.app.tracking import sim_tracking, tracked_config
 from dentibot.errors import DentibotError
 from dentibot.io.devices import DevicesConfig, load_devices_config, open_devices
@@ -391,7 +392,13 @@ class SessionController:
         trigger = kind                  # the protocol's step kinds are the triggers' names
         rt = self.runtime
         name = f"step {kind}" if kind != "drill" else "drill"
-        if not (kind == "drag" and rt.state == "dragging") and not (
+        # the tracker's calibration is a routine between ticks, not a state of the machine:
+        # it needs the arm still and no treatment under way
+        routine = kind == "calibrate_tracker"
+        if routine and rt.state not in CALIBRATION_START_STATES:
+            return [Reply("refused", f"{name}: needs state "
+                                     f"{' or '.join(CALIBRATION_START_STATES)}, not {rt.state}")]
+        if not routine and not (kind == "drag" and rt.state == "dragging") and not (
                 kind == "align" and rt.state == "self_aligning"):
             async def check():
                 if await rt.treatment.may_trigger(trigger):
@@ -403,6 +410,8 @@ class SessionController:
                 return [Reply("refused", str(refusal))]
         await self._end_activity(name)
         steps = _LiveSteps(self)
+        if routine:
+            steps.first.set_result(None)             # no command: started once running
         await self._name_step(kind)
         self._activity_name = name
         self._activity_end = ""

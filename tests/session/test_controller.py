@@ -356,3 +356,26 @@ async def test_esc_after_dragging_the_file_in_before_any_alignment_withdraws_it(
     assert _depths(c)[1] <= 0.0                             # out, by the truth
     assert ("retract", "dragging", "treating.retracting") in c.runtime.treatment.history
     await say(c, "quit")
+
+
+async def test_the_session_runs_the_trackers_calibration_step(tmp_path):
+    """``step N`` of a protocol with the patient tracker runs ``calibrate_tracker``: started
+    at once (no command of the machine behind it), finished with the anchors passed, the
+    runtime then using them; refused while a treatment step is under way."""
+    p = parse_protocol("name: p\nseed: 3\npatient: {tracker: true}\nsteps:\n"
+                       "  - calibrate_tracker: {}\n  - align: {duration_s: 5.0, fz_n: 0.2}\n")
+    c = SessionController(SessionOptions(protocol=p, clock="stepped", record_dir=tmp_path,
+                                         calibrated=True))
+    await say(c, "connect")
+    geometry = c.runtime.cfg.tooth.geometry
+    assert (await say(c, "step 1")).kind == "ok"
+    await c.advance(60.0, until=lambda r: c._activity_name is None)
+    text = ""
+    while c.messages:
+        _, text = c.messages.popleft()
+    assert "step calibrate_tracker: finished in state idle" in text, text
+    assert any(k == "tracker_calibration" for _, k, _ in c.runtime.events_log)
+    assert c.runtime.cfg.tooth.geometry is not geometry       # the identified anchors
+    assert (await say(c, "step 2")).kind == "ok" and c.state == "self_aligning"
+    assert (await say(c, "step 1")).kind == "refused"          # not while aligning
+    await say(c, "quit")
