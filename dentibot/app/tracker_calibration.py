@@ -76,6 +76,7 @@ from dentibot.control.strings import (
     AnchorCalibration,
     StringGeometry,
     calibrate_anchors,
+    calibration_condition,
     forward,
     lengths,
 )
@@ -274,26 +275,14 @@ class TrackerCalibration:
 
 
 def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """The rigid transform ``G`` (4x4) minimising ``sum |G src_i - dst_i|^2`` (Kabsch)."""
+    """The rigid transform ``G`` (4x4) minimising ``sum |G src_i - dst_i|^2`` (Kabsch, by
+    scipy's ``Rotation.align_vectors`` on the centred points)."""
     cs, cd = src.mean(axis=0), dst.mean(axis=0)
-    u, _, vt = np.linalg.svd((src - cs).T @ (dst - cd))
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    r = Rotation.align_vectors(dst - cd, src - cs)[0].as_matrix()
     g = np.eye(4)
     g[:3, :3] = r
     g[:3, 3] = cd - r @ cs
     return g
-
-
-def _condition(geometry: StringGeometry, i: int, poses: np.ndarray, offsets: bool) -> float:
-    """Condition number of string ``i``'s calibration Jacobian at ``geometry`` (rows
-    ``[-u_k, R_k^T u_k (, 1)]``, the model of ``calibrate_anchors``)."""
-    rs, ps = poses[:, :3, :3], poses[:, :3, 3]
-    d = ps + np.einsum("kij,j->ki", rs, geometry.tooth_mm[i]) - geometry.mount_mm[i]
-    u = d / np.linalg.norm(d, axis=1)[:, None]
-    cols = [-u, np.einsum("ki,kij->kj", u, rs)] + ([np.ones((len(ps), 1))] if offsets else [])
-    s = np.linalg.svd(np.hstack(cols), compute_uv=False)
-    return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
 
 def identify(nominal: StringGeometry, flange_poses: Sequence, lengths_mm, *, start_pose,
@@ -344,7 +333,7 @@ def identify(nominal: StringGeometry, flange_poses: Sequence, lengths_mm, *, sta
             why.append(f"rms residual {rms:.4f} mm > {bounds.max_rms_mm:g} mm")
         reports.append(StringReport(
             i + 1, da, db, sa, sb, float(cal.offsets_mm[i]), rms,
-            _condition(cal.geometry, i, poses, fit_offsets), not why, "; ".join(why)))
+            calibration_condition(cal.geometry, i, poses, fit_offsets), not why, "; ".join(why)))
     return TrackerCalibration(nominal, cal, tuple(reports), poses, m, sigma, bounds)
 
 

@@ -391,6 +391,18 @@ def _string_jacobian(a, b, Rs, ps, offsets: bool) -> np.ndarray:
     return np.hstack(cols)
 
 
+def calibration_condition(geometry: StringGeometry, i: int, poses, offsets: bool = False
+                          ) -> float:
+    """Condition number of string ``i``'s calibration Jacobian at ``geometry`` over the poses
+    ``MT_T`` (N x 4 x 4; rows ``[-u_k, R_k^T u_k (, 1)]``, the model of
+    :func:`calibrate_anchors`): how far its anchors are from undetermined."""
+    t = np.asarray(poses, dtype=float)
+    j = _string_jacobian(geometry.mount_mm[i], geometry.tooth_mm[i], t[:, :3, :3],
+                         t[:, :3, 3], offsets)
+    s = np.linalg.svd(j, compute_uv=False)
+    return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+
+
 def _identifiability_advice(Rs: np.ndarray, n_poses: int, n_params: int, rank: int,
                             weak: list[str]) -> str:
     spread = max(float(np.degrees(Rotation.from_matrix(R @ Rs[0].T).magnitude())) for R in Rs)
@@ -496,5 +508,6 @@ def ring_geometry(mount_radius_mm: float = 40.0, tooth_radius_mm: float = 15.0,
 
 __all__ = ["DEFAULT_CALIBRATION_MAX_CONDITION", "FULL_POSE_STRINGS", "POSITION_STRINGS",
            "AnchorCalibration", "LengthFinding", "LengthLimits", "PoseEstimate",
-           "StringGeometry", "as_pose", "calibrate_anchors", "check_lengths", "forward",
-           "length_jacobian", "lengths", "pose_matrix", "ring_geometry"]
+           "StringGeometry", "as_pose", "calibrate_anchors", "calibration_condition",
+           "check_lengths", "forward", "length_jacobian", "lengths", "pose_matrix",
+           "ring_geometry"]

@@ -130,6 +130,16 @@ def file_life_samples(table: pa.Table, spec: TrialSpec) -> dict[str, np.ndarray]
     return out
 
 
+def _save(fig, path: Path) -> Path:
+    """Lay ``fig`` out, write it to ``path`` (PNG, 120 dpi) and close it."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def figures(table: pa.Table, spec: TrialSpec, summary: dict, out: str | Path) -> list[Path]:
     """PNG figures in ``out``: fracture rate per arm and curvature class with Wilson 95 %
     intervals; completeness per arm; canals per file per arm."""
@@ -168,10 +178,7 @@ def figures(table: pa.Table, spec: TrialSpec, summary: dict, out: str | Path) ->
     ax.set_ylabel("fracture rate (Wilson 95 % CI)")
     ax.set_title(f"{spec.name}: file fractures per arm and Schneider class")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    paths.append(out / "fracture_rate.png")
-    fig.savefig(paths[-1], dpi=120)
-    plt.close(fig)
+    paths.append(_save(fig, out / "fracture_rate.png"))
 
     rows = table.to_pylist()
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -180,10 +187,7 @@ def figures(table: pa.Table, spec: TrialSpec, summary: dict, out: str | Path) ->
     ax.set_ylabel("completeness (eq 6.1)")
     ax.set_ylim(0, 1.02)
     ax.set_title(f"{spec.name}: completeness per arm")
-    fig.tight_layout()
-    paths.append(out / "completeness.png")
-    fig.savefig(paths[-1], dpi=120)
-    plt.close(fig)
+    paths.append(_save(fig, out / "completeness.png"))
 
     samples = file_life_samples(table, spec)
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -200,8 +204,5 @@ def figures(table: pa.Table, spec: TrialSpec, summary: dict, out: str | Path) ->
     ax.set_ylim(0, 1.02)
     ax.set_title(f"{spec.name}: file life (Miner's rule over canals drawn from each arm)")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    paths.append(out / "file_life.png")
-    fig.savefig(paths[-1], dpi=120)
-    plt.close(fig)
+    paths.append(_save(fig, out / "file_life.png"))
     return paths
