@@ -350,16 +350,13 @@ async def open_devices(cfg: DevicesConfig, *, home: bool = True,
     once the workspace is clear (:meth:`Meca500Driver.resume`, which refuses an arm in
     error).
 
-    What the process holds before the devices start is frozen out of the garbage collector's
+    What the process holds before the drive starts is frozen out of the garbage collector's
     sight first (``gc.freeze``; unfrozen on exit): from the drive's enable on, its heartbeat
     consumer watches the host every 30 ms, and a full collection over a start-up heap (the
     libraries a command imports) can pause the event loop longer than that, which the drive
     rightly takes for a dead host."""
     a, f, h, x = cfg.arm, cfg.ft, cfg.handpiece, cfg.aux
-    gc.collect()
-    gc.freeze()
     async with contextlib.AsyncExitStack() as stack:
-        stack.callback(gc.unfreeze)
         ft = NetFTDriver(f.host, f.port, f.http_port, counts_per_force=f.counts_per_force,
                          counts_per_torque=f.counts_per_torque,
                          stale_after_s=f.stale_after_ms / 1000.0)
@@ -371,6 +368,12 @@ async def open_devices(cfg: DevicesConfig, *, home: bool = True,
                                   connect_timeout_s=x.connect_timeout_s)
             await aux.connect()
             stack.push_async_callback(aux.close)
+        # frozen once the aux I/O feeds its own watchdog (a collection before that could
+        # outlast what is left of a previous connection's watchdog: host-lost, the STO open)
+        # and before the drive's heartbeat consumer starts
+        gc.collect()
+        gc.freeze()
+        stack.callback(gc.unfreeze)
         bus_kwargs = {"host": h.host, "port": h.port} if h.interface == "socketcand" else {}
         motor = Epos4Driver(interface=h.interface, channel=h.channel, host=h.host, port=h.port,
                             node_id=h.node_id, bus_kwargs=bus_kwargs or None,
