@@ -9,9 +9,9 @@ on a :class:`~dentibot.app.procedure.Procedure`, then one drilling round driven 
 
 - ``none``: no telemetry sink (the runtime builds no rows): controller + world only;
 - ``rows``: the telemetry row built every tick and discarded;
-- ``recorder``: every row and event to an :class:`~dentibot.telemetry.recorder.McapRecorder`
-  (``validate=False``, as the protocol runner does); the wall time includes closing the file
-  (the writer thread draining its queue).
+- ``recorder``: every row and event to the recorder ``dentibot run`` uses (``open_recorder``:
+  the MCAP recorder in its own process, ``validate=False``); the wall time includes closing
+  the file (the writer draining what it was handed).
 
 The speed factor is simulated seconds per wall second; the world's share is timed around
 ``World.step``. ``--profile S`` adds a cProfile breakdown of an ``S``-second round (no sink).
@@ -42,7 +42,7 @@ from dentibot.app.runner import runtime_config, world_config
 from dentibot.app.simulated import World
 from dentibot.app.steps import StepExecutor, drill_setup
 from dentibot.protocol.loader import load_protocol
-from dentibot.telemetry.recorder import McapRecorder
+from dentibot.telemetry.recorder_process import open_recorder
 
 ROOT = Path(__file__).resolve().parents[1]
 PROTOCOL = ROOT / "protocols" / "root-canal.yaml"
@@ -111,9 +111,9 @@ def run_variant(variant: str, seconds: float, protocol=None, out_dir: Path | Non
         sink = _discard
     elif variant == "recorder":
         path = (out_dir or Path(tempfile.gettempdir())) / "dentibot-bench-lockstep.mcap"
-        rec = McapRecorder(path, {"protocol": protocol.name, "seed": protocol.seed,
-                                  "rate_hz": protocol.control.rate_hz},
-                           overwrite=True, validate=False)
+        rec = open_recorder(path, {"protocol": protocol.name, "seed": protocol.seed,
+                                   "rate_hz": protocol.control.rate_hz},
+                            overwrite=True, validate=False)
         sink = rec.record
     elif variant != "none":
         raise ValueError(f"variant must be one of {VARIANTS}")

@@ -15,9 +15,10 @@ instead of the protocol's rounds), timed from its first row to its last by a tap
   per wall second;
 - ``recorder_ratio``: us per tick with the recorder / without it, the two runs interleaved
   ``--repeats`` times (the median of each is reported; the machine is shared);
-- ``writer_cpu_us_per_tick``: CPU time of the recorder's writer thread during the drill step,
-  and ``main_cpu_us_per_tick`` that of the control thread (wall minus it: time the control
-  thread waited, for the interpreter lock or the writer's back-pressure);
+- ``writer_cpu_us_per_tick``: CPU time of the recorder's writer (its process, or its thread
+  for an in-process recorder) during the drill step, and ``main_cpu_us_per_tick`` that of the
+  control thread (wall minus it: time the control thread waited, for the interpreter lock or
+  the writer's back-pressure);
 - ``breakdown``: one more run with ``time.perf_counter_ns`` hooks around each component
   (exclusive time: a component's time excludes the hooked components it calls), us per tick:
   ``world_step``, ``control`` (forward chain, estimate, admittance law and arm command),
@@ -37,6 +38,7 @@ import asyncio
 import contextlib
 import inspect
 import logging
+import os
 import statistics
 import sys
 import tempfile
@@ -54,6 +56,7 @@ from dentibot.protocol.loader import load_protocol
 from dentibot.protocol.schema import Protocol
 from dentibot.runtime import control_task
 from dentibot.telemetry.recorder import McapRecorder
+from dentibot.telemetry.recorder_process import RecorderProcess
 
 ROOT = Path(__file__).resolve().parents[1]
 PROTOCOL = ROOT / "protocols" / "root-canal.yaml"
@@ -161,8 +164,18 @@ def _hook_runner(h: _Hooks, runner: ProtocolRunner) -> None:
     h.patch(rt, "truth", "sim_truth")
     h.patch(runner.acc, "add", "live_summary")
     h.patch(McapRecorder, "record", "recorder_record")
+    h.patch(RecorderProcess, "record", "recorder_record")
     h.patch(runner, "progress", "progress")
     h.patch(proc.gate, "between", "gate")
+
+
+def _process_cpu_s(pid: int) -> float | None:
+    """CPU time (user + system) of process ``pid`` so far, from /proc (Linux)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _thread_cpu_s(thread) -> float | None:
@@ -186,9 +199,12 @@ class _DrillTap:
         self.cpu0 = self.cpu1 = 0.0
         self.wcpu0 = self.wcpu1 = None
 
-    def _writer(self):
+    def _writer_cpu_s(self) -> float | None:
         rec = self.runner.recorder if self.runner is not None else None
-        return None if rec is None else rec._thread
+        if rec is None:
+            return None
+        pid = getattr(rec, "pid", None)        # the recorder process, or the writer thread
+        return _process_cpu_s(pid) if pid is not None else _thread_cpu_s(rec._thread)
 
     def __call__(self, row: dict) -> None:
         step = row["step"]
@@ -198,13 +214,13 @@ class _DrillTap:
             if self.hooks is not None:
                 self.hooks.ns.clear()
             self.cpu0 = time.thread_time()
-            self.wcpu0 = _thread_cpu_s(self._writer())
+            self.wcpu0 = self._writer_cpu_s()
             self.t0, self.tick0 = time.perf_counter_ns(), row["tick"]
         elif row["tick"] % 500 == 0 or row["state"] == "done":
             # the window ends here (sampled, not every row: the tap's own cost stays small)
             self.t1, self.tick1 = time.perf_counter_ns(), row["tick"]
             self.cpu1 = time.thread_time()
-            self.wcpu1 = _thread_cpu_s(self._writer())
+            self.wcpu1 = self._writer_cpu_s()
             if self.hooks is not None:
                 self.ns = dict(self.hooks.ns)
 
@@ -294,7 +310,7 @@ def print_report(r: dict) -> None:
           f"CLI path, median of {r['repeats']}:")
     print(f"  recorder on : {r['us_per_tick_recorder']:7.1f} us/tick, "
           f"{r['speed_factor_recorder']:5.1f}x real time; control thread CPU "
-          f"{r['main_cpu_us_per_tick_recorder']:.1f} us/tick, writer thread CPU "
+          f"{r['main_cpu_us_per_tick_recorder']:.1f} us/tick, writer CPU "
           f"{r['writer_cpu_us_per_tick'] or 0:.1f} us/tick")
     print(f"  recorder off: {r['us_per_tick']:7.1f} us/tick, {r['speed_factor']:5.1f}x real "
           f"time; control thread CPU {r['main_cpu_us_per_tick']:.1f} us/tick")

@@ -29,6 +29,11 @@ class ConfigError(DentibotError, ValueError):
             msg += f" ({detail})"
         super().__init__(msg)
 
+    def __reduce__(self):
+        """Pickled with its fields (it crosses process boundaries: batch workers, the
+        recorder process)."""
+        return type(self), (self.field, self.value, self.limit, self.detail)
+
 
 class IdentificationError(DentibotError, ValueError):
     """A calibration or identification data set cannot determine the parameters.

@@ -36,7 +36,7 @@ from dentibot.sim.nitifile import NiTiFile
 from dentibot.sim.world import WorldConfig
 from dentibot.telemetry.foxglove import FoxgloveView
 from dentibot.telemetry.live import LiveView
-from dentibot.telemetry.recorder import McapRecorder
+from dentibot.telemetry.recorder_process import open_recorder
 from dentibot.telemetry.schema import TelemetryError
 from dentibot.telemetry.summary import RunSummary, SummaryAccumulator
 
@@ -293,7 +293,7 @@ class ProtocolRunner:
                             file_length_mm=float(p.file.length_mm))
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.recorder = McapRecorder(self.path, meta, overwrite=self._overwrite,
+            self.recorder = open_recorder(self.path, meta, overwrite=self._overwrite,
                                          validate=False, view=view)  # rows checked in tests
             meta = self.recorder.metadata
         if self._live_port is not None:

@@ -25,7 +25,7 @@ from dentibot.runtime.estimate import Devices
 from dentibot.sim.faults import FAULTS, FaultInjector
 from dentibot.sim.world import WorldConfig
 from dentibot.telemetry.reader import read_recording
-from dentibot.telemetry.recorder import McapRecorder
+from dentibot.telemetry.recorder_process import open_recorder
 
 #: What a safe outcome is for each fault (final states accepted) and the detection bound (ms)
 #: derived from the supervisor's limits at 500 Hz.
@@ -86,7 +86,7 @@ async def run_fault(name: str, seed: int = 1, engage_s: float = 3.0, watch_s: fl
         tmp = tempfile.TemporaryDirectory()
         directory = Path(tmp.name)
     path = Path(directory) / f"fault-{name}.mcap"
-    recorder = McapRecorder(path, {"protocol": f"selftest-{name}", "seed": seed,
+    recorder = open_recorder(path, {"protocol": f"selftest-{name}", "seed": seed,
                                    "rate_hz": 500.0, "devices": {"all": "sim+faults"}},
                             overwrite=True, validate=False)
     injector: list[FaultInjector] = []

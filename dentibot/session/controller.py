@@ -46,7 +46,7 @@ from dentibot.session.commands import (
     validate_step,
 )
 from dentibot.states.treatment import Refusal
-from dentibot.telemetry.recorder import McapRecorder
+from dentibot.telemetry.recorder_process import Recorder, open_recorder
 from dentibot.telemetry.schema import TelemetryError
 
 log = structlog.get_logger("dentibot.session")
@@ -208,7 +208,7 @@ class SessionController:
         self.runtime: Runtime | None = None
         self.world = None
         self.devices_cfg = self.opt.devices
-        self.recorder: McapRecorder | None = None
+        self.recorder: Recorder | None = None
         self.recording_error: str | None = None
         self.control_error: str | None = None
         self.closed = False
@@ -613,7 +613,7 @@ class SessionController:
 
         def create():
             path.parent.mkdir(parents=True, exist_ok=True)
-            return McapRecorder(path, meta, validate=False)
+            return open_recorder(path, meta, validate=False)
 
         try:
             self.recorder = await _in_thread(create)

@@ -86,6 +86,7 @@ import threading
 import time
 from importlib import metadata as _importlib_metadata
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any, BinaryIO, ClassVar
 
 import numpy as np
@@ -157,6 +158,9 @@ class TelemetryOverflow(TelemetryError):
     def __init__(self, path: object, detail: str, rows_dropped: int) -> None:
         self.rows_dropped = rows_dropped
         super().__init__(path, detail)
+
+    def __reduce__(self):
+        return type(self), (self.path, self.detail, self.rows_dropped)
 
 
 def _json_default(obj: Any) -> Any:
@@ -323,6 +327,9 @@ class McapRecorder:
     - ``view`` [True]: the 3D channels ``/tf`` and ``/scene``: a
       :class:`~dentibot.telemetry.foxglove.FoxgloveView` (e.g. with the tool geometry), True
       for the default view, False or None for none.
+    - ``on_flush`` [None]: called in the writer thread after each flush, with the recorder
+      (its counters are those of the flush); :mod:`~dentibot.telemetry.recorder_process`
+      reports flushes to the control process with it. An exception in it kills the writer.
 
     The writer is a daemon thread: call :meth:`close` (or use ``with``); a process that ends
     without it leaves a file readable up to its last flush, flagged incomplete.
@@ -341,7 +348,8 @@ class McapRecorder:
                  max_wait_s: float = 1.0, flush_interval_s: float = 0.05, poll_s: float = 0.01,
                  chunk_size: int = 1 << 20, compression: str = "zstd",
                  fsync: bool = False, validate: bool = True, overwrite: bool = False,
-                 view: FoxgloveView | bool | None = True) -> None:
+                 view: FoxgloveView | bool | None = True,
+                 on_flush: Callable[[McapRecorder], None] | None = None) -> None:
         if not flush_interval_s > 0:
             raise ConfigError("telemetry.flush_interval_s", flush_interval_s, "> 0 s")
         if not poll_s > 0:
@@ -386,6 +394,8 @@ class McapRecorder:
         self.poll_s = poll_s
         self.validate = validate
         self._fsync = fsync
+        self._on_flush = on_flush
+        self._unfinished = False                # close_unfinished(): no summary at the end
 
         # counters (written by one thread each: record() side or writer side)
         self.rows_queued = 0
@@ -600,6 +610,19 @@ class McapRecorder:
             self._raise_dead()
         return self.end
 
+    def close_unfinished(self) -> None:
+        """Write out everything handed over, then close the file without ``/run/end`` or a
+        summary: the file a crash leaves (readers flag it incomplete), but with nothing lost.
+        For a producer that is gone (the recorder process's parent died). Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._unfinished = True
+        self._stop.set()
+        self._wake.set()
+        self._thread.join()
+        log.warning("telemetry.unfinished", path=str(self.path), ticks_written=self.ticks_written)
+
     def __enter__(self) -> McapRecorder:  # noqa: PYI034
         return self
 
@@ -635,6 +658,9 @@ class McapRecorder:
                     break
                 self._wake.wait(self.poll_s)
                 self._wake.clear()
+            if self._unfinished:
+                self._close_file()
+                return
             self._writer.finish()
             self._sink.commit(final=True)
             if self._fsync and self._fd is not None:
@@ -801,6 +827,8 @@ class McapRecorder:
         self._settled = self._ticks_done
         with self._room:
             self._room.notify_all()
+        if self._on_flush is not None:
+            self._on_flush(self)
 
     def _close_file(self) -> None:
         if self._fd is not None:

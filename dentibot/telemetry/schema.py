@@ -66,6 +66,10 @@ class TelemetryError(DentibotError):
         self.detail = detail
         super().__init__(f"telemetry {self.path}: {detail}")
 
+    def __reduce__(self):
+        """Pickled with its fields (raised in the recorder process, re-raised here)."""
+        return type(self), (self.path, self.detail)
+
 
 @dataclass(frozen=True)
 class Field:

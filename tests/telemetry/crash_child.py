@@ -6,7 +6,7 @@
 
 After each row has been handed to the recorder (``record()`` returned), the child writes the
 row's tick number and a newline to its standard output with one unbuffered ``os.write``
-(logs go to the standard error): the
+(logs go to the standard error; the main job first says ``p<pid>`` of its recorder process): the
 parent's count of what was handed over is independent of the recorder's own counters and
 survives the child's SIGKILL (what was written to the pipe is in the pipe).
 """
@@ -51,8 +51,15 @@ def main_job(out: str) -> None:
     from dentibot.protocol.loader import load_protocol
 
     protocol = load_protocol(ROOT / "protocols" / "root-canal.yaml")
-    runner = ProtocolRunner(protocol, recording=out,
-                            tap=lambda row: _report(row["tick"]))
+    said: list[int] = []
+
+    def tap(row: dict) -> None:
+        if not said:                          # the recorder process's id, once: "p<pid>"
+            said.append(runner.recorder.pid)
+            os.write(_REPORT_FD, b"p%d\n" % said[0])
+        _report(row["tick"])
+
+    runner = ProtocolRunner(protocol, recording=out, tap=tap)
     asyncio.run(runner.run())
 
 

@@ -33,9 +33,11 @@ RATE_HZ = 500
 MAX_LOST = round(0.100 * RATE_HZ)            # 100 ms of procedure at 500 Hz: 50 ticks
 
 
-def _run_and_kill(mode: str, out: Path, kill_at_tick: int, tmp_path: Path) -> int:
+def _run_and_kill(mode: str, out: Path, kill_at_tick: int,
+                  tmp_path: Path) -> tuple[int, int | None]:
     """Start ``crash_child.py MODE OUT``, SIGKILL it once it reported ``kill_at_tick``; the
-    number of ticks it reported handed over (last reported tick + 1)."""
+    number of ticks it reported handed over (last reported tick + 1), and the id of its
+    recorder process if it said one."""
     err = open(tmp_path / f"{out.stem}.stderr", "wb")  # noqa: SIM115 - closed below
     child = subprocess.Popen([sys.executable, str(HERE / "crash_child.py"), mode, str(out)],
                              stdout=subprocess.PIPE, stderr=err, cwd=ROOT)
@@ -56,8 +58,9 @@ def _run_and_kill(mode: str, out: Path, kill_at_tick: int, tmp_path: Path) -> in
                 pytest.fail(f"the child ended by itself: {log!r}")
             data += chunk
             end = data.rfind(b"\n")
-            if end > 0:
-                last = int(data[data.rfind(b"\n", 0, end) + 1:end])
+            line = data[data.rfind(b"\n", 0, end) + 1:end] if end > 0 else b""
+            if line and not line.startswith(b"p"):
+                last = int(line)
         child.send_signal(signal.SIGKILL)
         data += child.stdout.read()              # what it reported before it died
         child.wait(30)
@@ -68,10 +71,25 @@ def _run_and_kill(mode: str, out: Path, kill_at_tick: int, tmp_path: Path) -> in
         child.stdout.close()
         err.close()
     assert child.returncode == -signal.SIGKILL
-    lines = bytes(data).split(b"\n")
-    reported = [int(x) for x in lines[:-1]]     # the last piece may be cut mid-line
+    lines = bytes(data).split(b"\n")[:-1]        # the last piece may be cut mid-line
+    pids = [int(x[1:]) for x in lines if x.startswith(b"p")]
+    reported = [int(x) for x in lines if not x.startswith(b"p")]
     assert reported == list(range(len(reported)))
-    return len(reported)
+    return len(reported), (pids[0] if pids else None)
+
+
+def _wait_gone(pid: int, timeout_s: float = 30.0) -> None:
+    """Wait until process ``pid`` (not ours: the dead child's recorder) has ended."""
+    deadline = time.monotonic() + timeout_s
+    stat = Path(f"/proc/{pid}/stat")
+    while True:
+        try:
+            if stat.read_text().rsplit(")", 1)[1].split()[0] == "Z":
+                return
+        except (OSError, IndexError):
+            return
+        assert time.monotonic() < deadline, f"recorder process {pid} still running"
+        time.sleep(0.02)
 
 
 def _ticks_with_the_standard_reader(path: Path) -> tuple[list[int], str]:
@@ -95,7 +113,7 @@ def test_kill_9_while_recording_as_fast_as_possible_loses_at_most_100_ms(
         tmp_path, kill_at_tick, capsys):
     """Rows handed over as fast as one core allows (faster than any lock-step run)."""
     path = tmp_path / "rows.mcap"
-    handed = _run_and_kill("rows", path, kill_at_tick, tmp_path)
+    handed, _ = _run_and_kill("rows", path, kill_at_tick, tmp_path)
     assert handed > kill_at_tick >= 3 * RATE_HZ        # some seconds of procedure
     ticks, how = _ticks_with_the_standard_reader(path)
     assert how == "as written"
@@ -117,15 +135,19 @@ def test_kill_9_while_recording_as_fast_as_possible_loses_at_most_100_ms(
 
 def test_kill_9_during_the_main_job_loses_at_most_100_ms(tmp_path, capsys):
     """The main job (protocols/root-canal.yaml, lock-step, recording) killed during the load
-    calibration, early in the drilling and 30 s into it; then report on what it left."""
+    calibration, early in the drilling and 30 s into it; then report on what it left. Its
+    recorder runs in a process of its own, which outlives the kill and writes out every row
+    it was sent: only the rows of the batch not yet sent (at most 10) are lost."""
     for kill_at_tick in (2500, 6000, 15000):
         path = tmp_path / f"main-{kill_at_tick}.mcap"
-        handed = _run_and_kill("main", path, kill_at_tick, tmp_path)
+        handed, recorder_pid = _run_and_kill("main", path, kill_at_tick, tmp_path)
+        assert recorder_pid is not None
+        _wait_gone(recorder_pid)
         ticks, how = _ticks_with_the_standard_reader(path)
         assert how == "as written"
         assert ticks == list(range(len(ticks)))
         lost = handed - len(ticks)
-        assert -1 <= lost <= MAX_LOST, (kill_at_tick, handed, len(ticks))
+        assert -1 <= lost <= 10 < MAX_LOST, (kill_at_tick, handed, len(ticks))
         capsys.readouterr()
         assert main(["report", str(path)]) == 0
         assert "incomplete" in capsys.readouterr().out

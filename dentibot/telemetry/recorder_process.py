@@ -1,0 +1,498 @@
+"""The MCAP recorder in a process of its own: the control task hands rows over and goes on.
+
+Why. :class:`~dentibot.telemetry.recorder.McapRecorder`'s writer thread spends about 30 us of
+CPU per tick (the mcap library's records in pure Python, the ``/tf`` view, JSON), all of it
+holding the interpreter lock the control task needs: in lock-step runs the recorder made the
+tick about 1.4x slower. :class:`RecorderProcess` runs that same recorder, unchanged, in a
+child process, on another core and under another interpreter lock. The control task pays for
+pickling its rows in batches (about 3 us a row) and one pipe write per batch.
+
+Same guarantees as :class:`~dentibot.telemetry.recorder.McapRecorder`, with the same
+parameters:
+
+- the budget is kept in ticks and covers everything a crash could lose: rows still in this
+  process's batch, in the pipe, queued in the child, in its unfinished chunk. The child reports
+  each flush; ``record()`` waits for one when ``budget`` ticks are at risk, at most
+  ``max_wait_s``, then drops the row and raises
+  :class:`~dentibot.telemetry.recorder.TelemetryOverflow`;
+- a batch leaves this process after ``send_ticks`` rows (a fifth of the budget, at most 10) or
+  half of ``flush_interval_s`` after its first row, whichever is first; events ride along;
+- if the child's writer dies, the next ``record()``, ``event()`` or ``close()`` raises
+  :class:`~dentibot.telemetry.schema.TelemetryError` with the cause;
+- errors of the arguments (file exists, bad compression...) are raised by the constructor,
+  as the in-process recorder raises them (the child builds the recorder and sends them back).
+
+What the child does on its own. It ignores SIGINT (Ctrl-C belongs to the control process,
+which stops the procedure safely and then closes the recording). If the control process dies
+(``kill -9``, a crash), the child sees its pipe close, writes out every row it received and
+closes the file without ``/run/end`` or summary: readers flag the recording incomplete, and
+it has lost only the rows that had not left the dead process (at most ``send_ticks``).
+
+The child is started by multiprocessing's fork server (``forkserver``; ``spawn`` where there is
+none): it inherits no sockets or files of the control process, so a device connection closed
+there is closed. The first recorder of a process starts the server (about 0.2 s, the imports of
+this module); later ones fork from it in a few milliseconds.
+
+:func:`open_recorder` chooses: a file path and picklable options get a
+:class:`RecorderProcess`, a stream (or a view with an unpicklable ``frames`` callable) stays in
+this process with a :class:`~dentibot.telemetry.recorder.McapRecorder`.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import os
+import pickle
+import signal
+import sys
+import threading
+import time
+import types
+import weakref
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+from dentibot.errors import ConfigError
+from dentibot.telemetry.recorder import McapRecorder, TelemetryOverflow
+from dentibot.telemetry.schema import END_STATUSES, TelemetryError
+
+__all__ = ["Recorder", "RecorderProcess", "open_recorder"]
+
+log = structlog.get_logger("dentibot.telemetry")
+
+#: counters kept by the child's recorder, reported with each flush (McapRecorder's names)
+CHILD_COUNTERS = ("ticks_written", "events_written", "rows_rejected", "rows_invalid",
+                  "nonfinite_rows", "flushes", "rows_flushed", "bytes_flushed",
+                  "transforms_written", "scenes_written", "view_errors")
+START_TIMEOUT_S = 30.0       # the fork server's first start imports this module
+CLOSE_TIMEOUT_S = 120.0      # the child writes out at most a budget of rows, then the summary
+_PRELOAD = ["dentibot.telemetry.recorder_process"]
+_PICKLE = pickle.HIGHEST_PROTOCOL
+
+
+def _context() -> multiprocessing.context.BaseContext:
+    """The fork server where the platform has one (no inherited sockets, fast), else spawn."""
+    if "forkserver" in multiprocessing.get_all_start_methods():
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(_PRELOAD)
+        return ctx
+    return multiprocessing.get_context("spawn")
+
+
+def _start_without_main(proc: multiprocessing.process.BaseProcess) -> None:
+    """Start ``proc`` without making the child import the parent's ``__main__``: by default
+    multiprocessing re-runs the parent's main script in every child (the whole CLI, a
+    benchmark...), seconds of imports the recorder does not need. Its target lives in this
+    module, which the fork server has imported already. The helper processes multiprocessing
+    starts the first time are given the real standard error: a terminal UI (textual) replaces
+    ``sys.stderr`` with an object that has no file descriptor, which they refuse."""
+    main, err = sys.modules["__main__"], sys.stderr
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    if _fileno(err) < 0 and sys.__stderr__ is not None:
+        sys.stderr = sys.__stderr__
+    try:
+        proc.start()
+    finally:
+        sys.modules["__main__"], sys.stderr = main, err
+
+
+def _fileno(stream: Any) -> int:
+    try:
+        return stream.fileno()
+    except (AttributeError, OSError, ValueError):
+        return -1
+
+
+def open_recorder(path: str | os.PathLike[str] | Any, metadata: dict[str, Any] | None = None,
+                  **options: Any) -> McapRecorder | RecorderProcess:
+    """The recorder for ``path``: a :class:`RecorderProcess` for a file path whose options can
+    cross to another process, else an in-process
+    :class:`~dentibot.telemetry.recorder.McapRecorder` (same arguments, same guarantees)."""
+    if hasattr(path, "write"):
+        return McapRecorder(path, metadata, **options)
+    try:
+        pickle.dumps((metadata, options), _PICKLE)
+    except (pickle.PicklingError, TypeError, AttributeError):
+        return McapRecorder(path, metadata, **options)
+    try:
+        return RecorderProcess(path, metadata, **options)
+    except _StartError as exc:                   # no process to be had: record here
+        log.warning("telemetry.in_process", path=str(path), reason=str(exc))
+        return McapRecorder(path, metadata, **options)
+
+
+class _StartError(TelemetryError):
+    """The recorder process could not be started (no fork server, no file descriptors...)."""
+
+
+class RecorderProcess:
+    """:class:`~dentibot.telemetry.recorder.McapRecorder` run in a child process (see the
+    module docstring). Same constructor arguments (a file path only), same methods
+    (``record``, ``event``, ``close``, ``duration_s``, context manager) and counters; the
+    counters the writer keeps are those of the child's last reported flush, final after
+    :meth:`close`.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], metadata: dict[str, Any] | None = None,
+                 **options: Any) -> None:
+        if hasattr(path, "write"):
+            raise ConfigError("telemetry.path", path, "a file path (a stream is written in "
+                              "this process: use McapRecorder)")
+        self.path = Path(path)
+        max_wait_s = options.get("max_wait_s", 1.0)
+        flush_interval_s = options.get("flush_interval_s", 0.05)
+        ctx = _context()
+        rows_r, rows_w = ctx.Pipe(duplex=False)
+        acks_r, acks_w = ctx.Pipe(duplex=False)
+        self._proc = ctx.Process(target=_child_main, name=f"mcap-writer:{self.path.name}",
+                                 args=(str(path), metadata, options, rows_r, acks_w),
+                                 daemon=True)
+        try:
+            _start_without_main(self._proc)
+        except (OSError, ValueError) as exc:
+            rows_r.close(), rows_w.close(), acks_r.close(), acks_w.close()
+            raise _StartError(self.path, f"cannot start the recorder process: {exc}") from exc
+        rows_r.close()
+        acks_w.close()
+        self._rows: Connection = rows_w
+        self._acks: Connection = acks_r
+        # dropped without close(): the pipes close, the child writes out what it has
+        self._release = weakref.finalize(self, _release, rows_w, acks_r)
+        ready = self._first_message()
+        if ready[0] == "error":
+            self._release()
+            self._proc.join()
+            raise ready[1]
+        _, self.metadata, self.budget, self.period_s = ready
+        self.start_wall_ns: int = self.metadata["start_wall_ns"]
+        self.max_wait_s = float(max_wait_s)
+        self.send_ticks = max(1, min(10, self.budget // 5))
+        self._send_after_s = flush_interval_s / 2
+
+        self.rows_queued = 0
+        self.events_queued = 0
+        self.rows_dropped = 0
+        self.queue_depth_max = 0
+        self.at_risk_max = 0
+        self.backpressure_waits = 0
+        self._counters = dict.fromkeys(CHILD_COUNTERS, 0)
+        self._settled = 0                        # ticks the child has flushed (or rejected)
+        self._pending: list[tuple[str, Any]] = []
+        self._pending_since = 0.0
+        self._last_t = 0.0
+        self._dead: TelemetryError | None = None
+        self._dead_reported = False
+        self._closed = False
+        self.end: dict[str, Any] | None = None
+
+    def _first_message(self) -> tuple:
+        if not self._acks.poll(START_TIMEOUT_S):
+            self._proc.kill()
+            self._proc.join()
+            raise TelemetryError(self.path, f"the recorder process did not start within "
+                                 f"{START_TIMEOUT_S:g} s")
+        try:
+            while True:
+                msg = self._acks.recv()
+                if msg[0] != "flushed":           # the constructor's first flush (/run)
+                    return msg
+        except EOFError:
+            self._proc.join()
+            raise TelemetryError(self.path, f"the recorder process died at start (exit code "
+                                 f"{self._proc.exitcode})") from None
+
+    # -- caller side (the control task) ----------------------------------------------------
+
+    def record(self, row: dict[str, Any]) -> None:
+        """Hand one tick row over. Returns at once unless ``budget`` ticks are at risk; then
+        waits for the child's next flush, at most ``max_wait_s`` (then the row is dropped and
+        TelemetryOverflow raised). The row must not be changed afterwards."""
+        if self._dead is not None or self._closed:
+            self._raise_dead()
+        if self.rows_queued - self._settled >= self.budget:
+            self._wait_for_room(row)
+        pending = self._pending
+        if not pending:
+            self._pending_since = time.monotonic()
+        pending.append(("tick", row))
+        self.rows_queued += 1
+        at_risk = self.rows_queued - self._settled
+        if at_risk > self.at_risk_max:
+            self.at_risk_max = at_risk
+        if len(pending) > self.queue_depth_max:
+            self.queue_depth_max = len(pending)
+        t = row.get("t")
+        if isinstance(t, (int, float)):
+            self._last_t = t
+        if len(pending) >= self.send_ticks or \
+                time.monotonic() - self._pending_since >= self._send_after_s:
+            self._send()
+
+    def event(self, kind: str, detail: str = "", *, t: float | None = None,
+              tick: int | None = None) -> None:
+        """Hand an ``/events`` message over (with the next batch); ``t``/``tick`` default to
+        the last recorded row's. Never waits."""
+        if self._dead is not None or self._closed:
+            self._raise_dead()
+        if not self._pending:
+            self._pending_since = time.monotonic()
+        self._pending.append(("event", (kind, detail, t, tick)))
+        self.events_queued += 1
+
+    def _send(self, raise_dead: bool = True) -> None:
+        items, self._pending = self._pending, []
+        try:
+            data = pickle.dumps(items, _PICKLE)
+        except (pickle.PicklingError, TypeError, AttributeError):
+            data = pickle.dumps([it for it in items if _picklable(it, self.path)], _PICKLE)
+        try:
+            self._rows.send_bytes(data)
+        except OSError as exc:                    # the child is gone
+            self._read_acks()
+            if self._dead is None:
+                self._dead = TelemetryError(self.path, f"the recorder process is gone (exit "
+                                            f"code {self._proc.exitcode}): {exc}")
+            if raise_dead:
+                self._raise_dead()
+            return
+        self._read_acks()
+
+    def _read_acks(self, timeout: float = 0.0) -> bool:
+        """Read what the child reported; wait up to ``timeout`` for the first message.
+        True if anything was read."""
+        acks = self._acks
+        got = False
+        try:
+            while acks.poll(timeout):
+                self._on_ack(acks.recv())
+                got = True
+                timeout = 0.0
+        except (EOFError, OSError):
+            if self._dead is None and not (self._closed and self.end is not None):
+                self._dead = TelemetryError(self.path, f"the recorder process died (exit code "
+                                            f"{self._proc.exitcode}); rows since its last "
+                                            f"flush ({self._counters['rows_flushed']} ticks on "
+                                            f"disk) are lost")
+        return got
+
+    def _on_ack(self, msg: tuple) -> None:
+        kind = msg[0]
+        if kind == "flushed":
+            self._settled, counters = msg[1], msg[2]
+            self._counters.update(counters)
+        elif kind == "dead":
+            self._dead = msg[1]
+            self._counters.update(msg[2])
+        elif kind == "closed":
+            self.end = msg[1]
+            self._counters.update(msg[2])
+            if msg[3] is not None and self._dead is None:
+                self._dead = msg[3]
+
+    def _wait_for_room(self, row: Any) -> None:
+        self.backpressure_waits += 1
+        if self._pending:
+            self._send()
+        deadline = time.monotonic() + self.max_wait_s
+        while self.rows_queued - self._settled >= self.budget and self._dead is None:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                self._overflow(row)
+            self._read_acks(remaining)
+        if self._dead is not None:
+            self._raise_dead()
+
+    def _overflow(self, row: Any) -> None:
+        self.rows_dropped += 1
+        at_risk = self.rows_queued - self._settled
+        tick = row.get("tick") if isinstance(row, dict) else None
+        raise TelemetryOverflow(self.path, f"the recorder process made no room in "
+                                f"{self.max_wait_s:g} s ({at_risk} ticks waiting to reach the "
+                                f"file, {self._counters['rows_flushed']} on disk): tick {tick} dropped, "
+                                f"{self.rows_dropped} row(s) lost so far; the recording has "
+                                f"a hole", self.rows_dropped)
+
+    def _raise_dead(self) -> None:
+        if self._dead is not None:
+            self._dead_reported = True
+            raise self._dead
+        raise TelemetryError(self.path, "recorder is closed")
+
+    def __getattr__(self, name: str) -> Any:
+        if name in CHILD_COUNTERS:
+            self._read_acks()
+            return self._counters[name]
+        raise AttributeError(name)
+
+    @property
+    def at_risk(self) -> int:
+        """Ticks handed over and not yet flushed to the OS: what a crash now could lose."""
+        self._read_acks()
+        return max(self.rows_queued - self._settled, 0)
+
+    @property
+    def overflowed(self) -> bool:
+        return self.rows_dropped > 0
+
+    @property
+    def error(self) -> BaseException | None:
+        self._read_acks()
+        return self._dead
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    @property
+    def pid(self) -> int | None:
+        """The recorder process's id."""
+        return self._proc.pid
+
+    def duration_s(self) -> float:
+        """Ticks handed over x period when the rate is known, else the last row's ``t``."""
+        if self.period_s is not None:
+            return self.rows_queued * self.period_s
+        return float(self._last_t)
+
+    def close(self, status: str = "ok", reason: str = "",
+              duration_s: float | None = None) -> dict[str, Any] | None:
+        """Write ``/run/end``, finish the file, wait for the child to exit. Idempotent.
+        Raises TelemetryError if the writer died and that was not reported yet."""
+        if self._closed:
+            return self.end
+        if status not in END_STATUSES:
+            raise ConfigError("run.status", status, f"one of {list(END_STATUSES)}")
+        self._closed = True
+        self._pending.append(("end", (status, reason,
+                                      self.duration_s() if duration_s is None else duration_s)))
+        self._send(raise_dead=False)              # a dead writer is reported below, once
+        deadline = time.monotonic() + CLOSE_TIMEOUT_S
+        while self.end is None and self._proc.is_alive() and time.monotonic() < deadline:
+            self._read_acks(0.1)
+        self._read_acks()
+        self._proc.join(max(0.0, deadline - time.monotonic()))
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join()
+            self._dead = self._dead or TelemetryError(
+                self.path, f"the recorder process did not finish within {CLOSE_TIMEOUT_S:g} s")
+        self._release()
+        if self.end is None and self._dead is None:
+            self._dead = TelemetryError(self.path, f"the recorder process ended without "
+                                        f"finishing the file (exit code {self._proc.exitcode})")
+        if self._dead is not None and not self._dead_reported:
+            self._raise_dead()
+        return self.end
+
+    def __enter__(self) -> RecorderProcess:  # noqa: PYI034
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc is None:
+            self.close("ok")
+            return
+        try:
+            self.close("aborted", f"{exc_type.__name__}: {exc}")
+        except TelemetryError as err:     # do not hide the exception already in flight
+            log.error("telemetry.close_failed", path=str(self.path), error=str(err))
+
+
+#: what :func:`open_recorder` returns
+Recorder = McapRecorder | RecorderProcess
+
+
+def _release(*conns: Connection) -> None:
+    for conn in conns:
+        conn.close()
+
+
+def _picklable(item: tuple[str, Any], path: Path) -> bool:
+    try:
+        pickle.dumps(item, _PICKLE)
+    except (pickle.PicklingError, TypeError, AttributeError) as exc:
+        log.error("telemetry.unserialisable", path=str(path), what=item[0], error=str(exc))
+        return False
+    return True
+
+
+# -- the child process -----------------------------------------------------------------------
+
+def _counters(rec: McapRecorder) -> dict[str, int]:
+    return {name: getattr(rec, name) for name in CHILD_COUNTERS}
+
+
+def _child_main(path: str, metadata: dict[str, Any] | None, options: dict[str, Any],
+                rows: Connection, acks: Connection) -> None:
+    """The recorder process: build the recorder, feed it what arrives, report flushes."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _terminated)
+    lock = threading.Lock()                  # the writer thread reports flushes too
+
+    def report(msg: tuple) -> None:
+        with lock:
+            acks.send(msg)
+
+    def flushed(rec: McapRecorder) -> None:
+        try:
+            report(("flushed", rec._settled, _counters(rec)))   # noqa: SLF001 - our own
+        except OSError:
+            pass                                 # the parent is gone: the main loop sees it
+
+    try:
+        rec = McapRecorder(path, metadata, on_flush=flushed, **options)
+    except BaseException as exc:  # noqa: BLE001 - sent to the parent, raised there
+        report(("error", exc if _pickles(exc) else TelemetryError(path, repr(exc))))
+        return
+    rate = rec.metadata.get("rate_hz")
+    period = 1.0 / rate if isinstance(rate, (int, float)) and math.isfinite(rate) and rate > 0 \
+        else None
+    report(("ready", rec.metadata, rec.budget, period))
+    dead: TelemetryError | None = None
+    while True:
+        try:
+            items = pickle.loads(rows.recv_bytes())
+        except (EOFError, OSError, _Terminated):  # the control process is gone, or ending
+            rec.close_unfinished()               # without closing (daemon: terminated)
+            return
+        for kind, payload in items:
+            if kind == "end":
+                status, reason, duration = payload
+                error = None
+                try:
+                    end = rec.close(status, reason, duration)
+                except TelemetryError as exc:
+                    end, error = rec.end, (None if dead is not None else exc)
+                report(("closed", end, _counters(rec), error))
+                return
+            if dead is not None:
+                continue                         # the parent knows; wait for its close
+            try:
+                if kind == "tick":
+                    rec.record(payload)
+                else:
+                    ev_kind, detail, t, tick = payload
+                    rec.event(ev_kind, detail, t=t, tick=tick)
+            except TelemetryError as exc:
+                dead = exc
+                report(("dead", exc if _pickles(exc) else TelemetryError(path, repr(exc)),
+                        _counters(rec)))
+
+
+class _Terminated(Exception):  # noqa: N818 - a signal, not an error
+    """SIGTERM in the recorder process (its parent ends without closing it)."""
+
+
+def _terminated(signum: int, frame: Any) -> None:
+    raise _Terminated
+
+
+def _pickles(obj: Any) -> bool:
+    try:
+        pickle.dumps(obj, _PICKLE)
+    except Exception:  # noqa: BLE001
+        return False
+    return True
