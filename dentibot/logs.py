@@ -46,12 +46,17 @@ class _ToStructlog(logging.Handler):
             self.handleError(record)
 
 
+_SETTINGS: tuple[str, bool] | None = None
+
+
 def configure_logging(level: str = "warning", *, json: bool = False) -> None:
     """Log lines of ``level`` and above to stderr with a timestamp (``json``: one JSON object
     per line); the libraries' standard-library logging follows the same level and format.
     Raises ValueError naming the allowed levels."""
+    global _SETTINGS
     if level not in LOG_LEVELS:
         raise ValueError(f"log level {level!r}: one of {', '.join(LOG_LEVELS)}")
+    _SETTINGS = (level, json)
     number = getattr(logging, level.upper())
     processors: list[Any] = [structlog.processors.add_log_level,
                              structlog.processors.TimeStamper("iso")]
@@ -75,6 +80,12 @@ def configure_logging(level: str = "warning", *, json: bool = False) -> None:
         pm.removeHandler(h)
     pm.propagate = True
     pm.setLevel(logging.NOTSET)
+
+
+def logging_settings() -> tuple[str, bool] | None:
+    """``(level, json)`` of the last :func:`configure_logging`, or None: what a helper process
+    (the recorder's) needs to log the same way."""
+    return _SETTINGS
 
 
 def configure_default() -> None:

@@ -36,7 +36,7 @@ from dentibot.sim.nitifile import NiTiFile
 from dentibot.sim.world import WorldConfig
 from dentibot.telemetry.foxglove import FoxgloveView
 from dentibot.telemetry.live import LiveView
-from dentibot.telemetry.recorder_process import open_recorder
+from dentibot.telemetry.recorder_process import open_recorder, prestart_recorder_process
 from dentibot.telemetry.schema import TelemetryError
 from dentibot.telemetry.summary import RunSummary, SummaryAccumulator
 
@@ -258,6 +258,8 @@ class ProtocolRunner:
         return result
 
     async def _run_devices(self) -> RunResult:
+        if self.path is not None:        # before any device is due a message: see its doc
+            prestart_recorder_process()
         if self.devices is None:
             async with self.procedure:
                 return await self._run()

@@ -57,6 +57,7 @@ from typing import Any
 import structlog
 
 from dentibot.errors import ConfigError
+from dentibot.logs import configure_default, configure_logging, logging_settings
 from dentibot.telemetry.recorder import McapRecorder, TelemetryOverflow
 from dentibot.telemetry.schema import END_STATUSES, TelemetryError
 
@@ -129,6 +130,53 @@ class _StartError(TelemetryError):
     """The recorder process could not be started (no fork server, no file descriptors...)."""
 
 
+_Child = tuple[multiprocessing.process.BaseProcess, Connection, Connection]
+_spare: _Child | None = None
+
+
+def _spawn() -> _Child:
+    """A recorder process waiting for its file: (process, rows pipe, acks pipe)."""
+    ctx = _context()
+    rows_r, rows_w = ctx.Pipe(duplex=False)
+    acks_r, acks_w = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_child_main, name="mcap-writer", args=(rows_r, acks_w),
+                       daemon=True)
+    try:
+        _start_without_main(proc)
+    except (OSError, ValueError) as exc:
+        for conn in (rows_r, rows_w, acks_r, acks_w):
+            conn.close()
+        raise _StartError("<recorder process>", f"cannot start it: {exc}") from exc
+    rows_r.close()
+    acks_w.close()
+    return proc, rows_w, acks_r
+
+
+def prestart_recorder_process() -> None:
+    """Start the next recorder's process now. A caller about to begin real-time work (a drive
+    whose heartbeat consumer expects a message every 30 ms) calls this first: the first
+    recorder process of a program starts multiprocessing's fork server (about 0.2 s), which
+    must not happen while the control task is due. The next :class:`RecorderProcess` takes
+    this process and only waits for its file to be created (milliseconds). Never raises: a
+    recorder that cannot have a process records in this one (:func:`open_recorder`)."""
+    global _spare
+    if _spare is not None and _spare[0].is_alive():
+        return
+    try:
+        _spare = _spawn()
+    except _StartError as exc:
+        log.warning("telemetry.no_recorder_process", reason=str(exc))
+
+
+def _take_spare() -> _Child | None:
+    global _spare
+    spare, _spare = _spare, None
+    if spare is not None and not spare[0].is_alive():
+        _release(spare[1], spare[2])
+        return None
+    return spare
+
+
 class RecorderProcess:
     """:class:`~dentibot.telemetry.recorder.McapRecorder` run in a child process (see the
     module docstring). Same constructor arguments (a file path only), same methods
@@ -145,23 +193,12 @@ class RecorderProcess:
         self.path = Path(path)
         max_wait_s = options.get("max_wait_s", 1.0)
         flush_interval_s = options.get("flush_interval_s", 0.05)
-        ctx = _context()
-        rows_r, rows_w = ctx.Pipe(duplex=False)
-        acks_r, acks_w = ctx.Pipe(duplex=False)
-        self._proc = ctx.Process(target=_child_main, name=f"mcap-writer:{self.path.name}",
-                                 args=(str(path), metadata, options, rows_r, acks_w),
-                                 daemon=True)
-        try:
-            _start_without_main(self._proc)
-        except (OSError, ValueError) as exc:
-            rows_r.close(), rows_w.close(), acks_r.close(), acks_w.close()
-            raise _StartError(self.path, f"cannot start the recorder process: {exc}") from exc
-        rows_r.close()
-        acks_w.close()
+        self._proc, rows_w, acks_r = _take_spare() or _spawn()
         self._rows: Connection = rows_w
         self._acks: Connection = acks_r
         # dropped without close(): the pipes close, the child writes out what it has
         self._release = weakref.finalize(self, _release, rows_w, acks_r)
+        rows_w.send((str(path), metadata, options, logging_settings()))
         ready = self._first_message()
         if ready[0] == "error":
             self._release()
@@ -425,11 +462,20 @@ def _counters(rec: McapRecorder) -> dict[str, int]:
     return {name: getattr(rec, name) for name in CHILD_COUNTERS}
 
 
-def _child_main(path: str, metadata: dict[str, Any] | None, options: dict[str, Any],
-                rows: Connection, acks: Connection) -> None:
-    """The recorder process: build the recorder, feed it what arrives, report flushes."""
+def _child_main(rows: Connection, acks: Connection) -> None:
+    """The recorder process: wait for its file's arguments, build the recorder, feed it what
+    arrives, report flushes. It logs as the control process does (level, format, on stderr:
+    never on the standard output that ``--json`` reports own)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _terminated)
+    try:
+        path, metadata, options, logs = rows.recv()
+    except (EOFError, OSError, _Terminated):     # a spare never used
+        return
+    if logs is not None:
+        configure_logging(logs[0], json=logs[1])
+    else:
+        configure_default()
     lock = threading.Lock()                  # the writer thread reports flushes too
 
     def report(msg: tuple) -> None:
