@@ -1,7 +1,7 @@
 """Real-time control loop and device figures against the wire simulators (another process).
 
     .venv/bin/python benchmarks/realtime_loop.py [--seconds 60] [--rate 500 | --rates 500 1000]
-                                                 [--sleep-seconds 10] [--json FILE]
+                                                 [--sleep-seconds 10] [--load N] [--json FILE]
 
 1. Starts ``dentibot sim serve`` in a child process (loopback, free ports), connects the four
    real drivers (Meca500 TCP, Net F/T UDP, EPOS4 via socketcand, Modbus TCP).
@@ -15,6 +15,11 @@
    :class:`DeadlineStats` histogram bounds; stream losses (F/T sequence gaps, unanswered
    EPOS4 SYNCs, arm cycles without joints); CPU of both processes.
 4. Beside it, the same loop paced by plain ``asyncio.sleep(period)`` (``--sleep-seconds``).
+
+``--load N`` runs N CPU-bound jobs (busy Python processes at the ordinary priority) for the
+whole measurement: the machine as it is when something else runs beside the robot. The control
+loop raises its priority where permitted (``realtime_policy``), and so does ``dentibot sim
+serve``; ``priority_raised`` says whether the system granted it.
 
 Targets: 500 Hz p99 lateness <= 100 us, zero overruns over 60 s.
 """
@@ -41,7 +46,7 @@ from benchutil import fmt, quantiles
 
 from dentibot.app.procedure import Procedure
 from dentibot.io.devices import loopback_config, open_devices
-from dentibot.runtime.clock import Clock, RealTimeClock
+from dentibot.runtime.clock import Clock, RealTimeClock, raised_priority
 from dentibot.runtime.config import RuntimeConfig, Thresholds
 from dentibot.app.simulated import true_gravity_model
 from dentibot.sim.world import World, WorldConfig
@@ -199,18 +204,30 @@ def _serve(ports: dict) -> subprocess.Popen:
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
 
 
+def _load_jobs(n: int) -> list[subprocess.Popen]:
+    """``n`` CPU-bound jobs at the ordinary priority (a busy loop each)."""
+    return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+
+
+def _priority_granted() -> bool:
+    with raised_priority() as granted:
+        return granted
+
+
 async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float = 10.0,
-                     round_trip_n: int = 20) -> dict:
+                     round_trip_n: int = 20, load: int = 0) -> dict:
     ports = {"meca": free_port(), "http": free_port(), "modbus": free_port(),
              "can": free_port(), "netft": free_port(socket.SOCK_DGRAM)}
     serve = _serve(ports)  # started once, before any timing
+    jobs = _load_jobs(load)
     try:
         serve.stdout.readline()                      # the banner: listening
         cfg = loopback_config(meca_port=ports["meca"], netft_port=ports["netft"],
                               netft_http_port=ports["http"], modbus_port=ports["modbus"],
                               can_port=ports["can"])
         world = World(WorldConfig(seed=1))           # the server's world, for its load model
-        result: dict = {"seconds": seconds, "sleep_seconds": sleep_seconds, "rates": {}}
+        result: dict = {"seconds": seconds, "sleep_seconds": sleep_seconds, "rates": {},
+                        "load_jobs": load, "priority_raised": _priority_granted()}
         async with open_devices(cfg) as d:
             result["round_trips"] = await round_trips(d, round_trip_n)
             for rate in rates:
@@ -226,17 +243,23 @@ async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float
                         d, world, SleepClock(1.0 / rate), sleep_seconds)
         return result
     finally:
+        for job in jobs:
+            job.kill()
+            job.wait()
         serve.terminate()
         serve.communicate(timeout=20)
 
 
 def measure(seconds: float = 60.0, rates=(500.0, 1000.0), sleep_seconds: float = 10.0,
-            round_trip_n: int = 20) -> dict:
-    """Round trips, then each rate with absolute deadlines, then each with plain sleep."""
-    return asyncio.run(main_async(seconds, rates, sleep_seconds, round_trip_n))
+            round_trip_n: int = 20, load: int = 0) -> dict:
+    """Round trips, then each rate with absolute deadlines, then each with plain sleep, with
+    ``load`` CPU-bound jobs running throughout."""
+    return asyncio.run(main_async(seconds, rates, sleep_seconds, round_trip_n, load))
 
 
 def print_report(r: dict) -> None:
+    print(f"{r['load_jobs']} CPU-bound job(s) beside it; control loop priority "
+          f"{'raised' if r['priority_raised'] else 'NOT raised (not permitted)'}")
     for rate, res in r["rates"].items():
         for name in ("absolute_deadlines", "plain_asyncio_sleep"):
             s = res.get(name)
@@ -265,13 +288,14 @@ def main() -> None:
     ap.add_argument("--rates", type=float, nargs="+", help="several rates (overrides --rate)")
     ap.add_argument("--sleep-seconds", type=float, default=None,
                     help="plain asyncio.sleep loop length (default: min(seconds, 10))")
+    ap.add_argument("--load", type=int, default=0, help="CPU-bound jobs running beside it")
     ap.add_argument("--json", help="write the figures to this file")
     args = ap.parse_args()
     structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.ERROR))
     # python-can: "Got incomplete message" on each TCP read that splits a frame (under load)
     logging.getLogger("can.interfaces.socketcand").setLevel(logging.ERROR)
     sleep_s = min(args.seconds, 10.0) if args.sleep_seconds is None else args.sleep_seconds
-    r = measure(args.seconds, args.rates or [args.rate], sleep_s)
+    r = measure(args.seconds, args.rates or [args.rate], sleep_s, load=args.load)
     print_report(r)
     if args.json:
         Path(args.json).write_text(json.dumps(r, indent=2))

@@ -20,8 +20,9 @@ process is running beside it):
 - ``recording``: MCAP recorder throughput on real rows, file size per minute at 500 Hz
   (``recording_speed.py``);
 - ``realtime``: the control task at 500 Hz and 1 kHz for 60 s each (10 s with --quick)
-  against ``dentibot sim serve`` in another process, beside the same loop paced by plain
-  ``asyncio.sleep``; device round trips; stream losses (``realtime_loop.py``).
+  against ``dentibot sim serve`` in another process, with one CPU-bound job running beside
+  them, and the same loop paced by plain ``asyncio.sleep``; device round trips; stream losses
+  (``realtime_loop.py``).
 
 The machine's load average is recorded before and after: the figures are only comparable
 between runs on a quiet machine, but ratios inside one run are always comparable.
@@ -75,6 +76,7 @@ class Sizes:
     sleep_s: float = 10.0
     round_trips: int = 20
     rates: tuple[float, ...] = (500.0, 1000.0)
+    realtime_load: int = 1          # CPU-bound jobs beside the real-time loop
     profile_s: float = 20.0
     tick_repeats: int = 3
 
@@ -114,9 +116,10 @@ def collect(sizes: Sizes = FULL, sections=SECTIONS, profile: bool = False,
         res["recording"] = recording_speed.measure(sizes.recording_rows)
     if "realtime" in sections:
         say(f"real time ({', '.join(f'{r:g}' for r in sizes.rates)} Hz, {sizes.realtime_s:g} s "
-            f"each, plain sleep {sizes.sleep_s:g} s each, wire simulators in another process)")
+            f"each, plain sleep {sizes.sleep_s:g} s each, wire simulators in another process, "
+            f"{sizes.realtime_load} CPU-bound job(s) beside them)")
         res["realtime"] = realtime_loop.measure(sizes.realtime_s, sizes.rates, sizes.sleep_s,
-                                                sizes.round_trips)
+                                                sizes.round_trips, load=sizes.realtime_load)
     res["elapsed_s"] = time.perf_counter() - t0
     res["load_average_after"] = load_average()
     return res
@@ -175,6 +178,8 @@ def flatten(res: dict) -> dict:
         out["recording_compression"] = first["compression"]
     if "realtime" in res:
         rt = res["realtime"]
+        out["realtime_load_jobs"] = rt["load_jobs"]
+        out["realtime_priority_raised"] = rt["priority_raised"]
         for rate, r in rt["rates"].items():
             hz = _hz(rate)
             for prefix, name in (("", "absolute_deadlines"), ("sleep_", "plain_asyncio_sleep")):
@@ -284,7 +289,9 @@ def print_table(res: dict, flat: dict) -> None:
                           f"{fmt(e2['max'], '.0f')} us, {sl['overruns']} overruns, "
                           f"{sl['effective_rate_hz']:.0f} Hz")
             is500 = float(rate) == 500.0
-            rows.append((f"{float(rate):g} Hz lateness p50/p99/max, {rt['seconds']:g} s",
+            rows.append((f"{float(rate):g} Hz lateness p50/p99/max, {rt['seconds']:g} s, "
+                         f"{rt['load_jobs']} CPU job(s) beside, priority "
+                         f"{'raised' if rt['priority_raised'] else 'not raised'}",
                          "p99 <= 100 us, 0 overruns" if is500 else "",
                          (f"{fmt(ex['p50'], '.0f')}/{fmt(ex['p99'], '.0f')}/"
                           f"{fmt(ex['max'], '.0f')} us, "

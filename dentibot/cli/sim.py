@@ -14,6 +14,7 @@ from pathlib import Path
 
 from dentibot.cli.common import user_errors
 from dentibot.io.devices import devices_yaml
+from dentibot.runtime.clock import raised_priority
 from dentibot.sim.serve import ServePorts, VirtualDentiBot
 from dentibot.sim.world import WorldConfig
 
@@ -46,7 +47,8 @@ async def _serve(args: argparse.Namespace) -> None:
 
 @user_errors
 def cmd_serve(args: argparse.Namespace) -> int:
-    with contextlib.suppress(KeyboardInterrupt):
+    # a simulated device keeps its deadlines as a real one does: ahead of ordinary jobs
+    with contextlib.suppress(KeyboardInterrupt), raised_priority():
         asyncio.run(_serve(args))
     return 0
 

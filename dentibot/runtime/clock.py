@@ -21,6 +21,7 @@ import contextlib
 import gc
 import bisect
 import math
+import os
 import time
 from collections.abc import Awaitable, Callable
 
@@ -248,10 +249,48 @@ class LockStepClock(Clock):
         return 0.0
 
 
+#: Nice value the real-time control loop asks for: ahead of every ordinary job on the machine
+#: (their 0), behind the kernel's own threads. Granted with CAP_SYS_NICE (root, or the
+#: ``RLIMIT_NICE`` a robot cell's account is given); without it the loop runs as it is.
+REALTIME_NICE = -10
+
+
 @contextlib.contextmanager
-def quiet_collector(realtime: bool):
-    """The garbage collector's policy while a control loop runs; yields ``collect(n)`` to call
-    in the slack after tick ``n``.
+def raised_priority(nice: int = REALTIME_NICE):
+    """The calling thread's scheduling priority raised to ``nice`` while the block runs, where
+    the system permits (Linux: a thread's own nice value; the recorder's and the UI's threads
+    keep theirs); yields True when granted. Restored on exit.
+
+    Why: on a machine loaded by other jobs, a control loop at the same priority shares its
+    core with them, and its 2 ms deadlines slip by a scheduler slice (milliseconds); the
+    device streams then go stale. Not SCHED_FIFO: the loop spins with ``asyncio.sleep(0)``
+    for its last 1.5 ms before each deadline, which a real-time policy would turn into a
+    core taken from everything else."""
+    try:
+        before = os.getpriority(os.PRIO_PROCESS, 0)
+    except (AttributeError, OSError):          # no such call on this platform
+        yield False
+        return
+    granted = False
+    if nice < before:
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
+            granted = True
+        except OSError:                         # not permitted: run as we are
+            pass
+    try:
+        yield granted or nice >= before
+    finally:
+        if granted:
+            with contextlib.suppress(OSError):
+                os.setpriority(os.PRIO_PROCESS, 0, before)
+
+
+@contextlib.contextmanager
+def realtime_policy(realtime: bool):
+    """The control loop's real-time policy: the thread's priority raised
+    (:func:`raised_priority`) and the garbage collector kept out of ticks; yields
+    ``collect(n)`` to call in the slack after tick ``n``.
 
     In real time the cyclic collector runs only there (young generation every 50 ticks, older
     every 5000), never in the middle of a tick: a full collection triggered by allocation can
@@ -271,7 +310,8 @@ def quiet_collector(realtime: bool):
             gc.collect(1 if n % 5000 == 0 else 0)
 
     try:
-        yield collect
+        with raised_priority():
+            yield collect
     finally:
         gc.unfreeze()
         if was_enabled:

@@ -23,7 +23,7 @@ from dentibot.control.kinematics import Meca500
 from dentibot.control.tick import forward_chain
 from dentibot.control.wrench import GravityModel
 from dentibot.errors import DentibotError, DeviceFault
-from dentibot.runtime.clock import Clock, DeadlineStats, quiet_collector
+from dentibot.runtime.clock import Clock, DeadlineStats, realtime_policy
 from dentibot.runtime.actuate import arm_command, recover_all, stop_all
 from dentibot.runtime.config import RuntimeConfig
 from dentibot.runtime.estimate import Devices, Estimate, MotorView, estimate
@@ -152,14 +152,14 @@ class Runtime:
                   between: Callable[[], Awaitable[None]] | None = None) -> None:
         """Tick until ``until(self)`` is true, ``max_ticks`` ticks ran or ``request_stop``.
         ``between()`` is awaited after every tick, before waiting for the next one (the
-        procedure's gate: commands and waiters). In real time the garbage collector runs only
-        in the slack after a tick (:func:`~dentibot.runtime.clock.quiet_collector`)."""
+        procedure's gate: commands and waiters). Real time: priority raised, collector in
+        the slack after a tick (:func:`~dentibot.runtime.clock.realtime_policy`)."""
         self._stop.clear()
         self.clock.start()
         await self.clock.wait_first()
         lateness = 0.0
         n = 0
-        with quiet_collector(self.clock.realtime) as collect:
+        with realtime_policy(self.clock.realtime) as collect:
             while not self._stop.is_set():
                 t0 = time.perf_counter()
                 await self.tick(lateness)
