@@ -1,10 +1,12 @@
 """The control task's clocks (docs/architecture.md, "Time") and its deadline accounting.
 
-- :class:`RealTimeClock`: absolute deadlines ``t0 + k * period``. It sleeps coarsely with
-  ``asyncio.sleep`` until ``spin_s`` before the deadline, then finishes by yielding to the loop
-  (``asyncio.sleep(0)``) until the deadline passes: the event loop keeps serving the device
-  streams while it waits, and lateness stays in microseconds. Plain ``asyncio.sleep(period)``
-  rounds its timeout up to whole milliseconds (epoll), which at 500 Hz is most of a period.
+- :class:`RealTimeClock`: absolute deadlines ``t0 + k * period``. It waits on a kernel timer
+  armed at the deadline (Linux ``timerfd``, watched by the event loop), so the loop keeps
+  serving the device streams while it waits, sleeps, and wakes within microseconds; without
+  one it sleeps coarsely with ``asyncio.sleep`` until ``spin_s`` before the deadline, then
+  yields to the loop (``asyncio.sleep(0)``) until the deadline passes. Plain
+  ``asyncio.sleep(period)`` rounds its timeout up to whole milliseconds (epoll), which at
+  500 Hz is most of a period.
   A tick that starts more than a whole period late is counted as missed and the schedule
   skips ahead (no burst of catch-up ticks).
 - :class:`LockStepClock`: simulated time; ``wait_next`` steps the world by exactly one period
@@ -26,6 +28,11 @@ import time
 from collections.abc import Awaitable, Callable
 
 from dentibot.errors import ConfigError
+from dentibot.runtime.deadline_timer import deadline_timer
+
+#: the kernel timer wakes the loop this long before the deadline, which it then reaches by
+#: yielding: a thread's wake-up takes tens of microseconds (timer slack, scheduling)
+_WAKE_EARLY_S = 100e-6
 
 #: Upper edges (us) of the lateness histogram bins; the last bin is open.
 LATENESS_BINS_US = (5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000, 10000, 20000, 50000)
@@ -96,6 +103,8 @@ class Clock:
     period_s: float
     #: True when ticks have deadlines in wall-clock time (lateness and overruns mean something).
     realtime: bool = True
+    #: True when its deadlines are waited for on the kernel's timer (the loop sleeps)
+    kernel_timer: bool = False
 
     def start(self) -> None:
         raise NotImplementedError
@@ -117,13 +126,27 @@ def _check_period(period_s: float) -> float:
 
 
 class RealTimeClock(Clock):
+    """Absolute deadlines ``t0 + k * period`` on ``clock``. On Linux with the monotonic clock
+    (``time.perf_counter``, the default) it waits on a kernel timer armed at the deadline
+    (:class:`~dentibot.runtime.deadline_timer.DeadlineTimer`): the event loop sleeps,
+    serving the device streams, and wakes within microseconds of the deadline, leaving the
+    CPU to everything else meanwhile. Elsewhere (or ``timer=False``) it sleeps coarsely and
+    spins the last ``spin_s``."""
+
     def __init__(self, period_s: float = 0.002, spin_s: float = 0.0015,
-                 clock: Callable[[], float] = time.perf_counter) -> None:
+                 clock: Callable[[], float] = time.perf_counter, timer: bool = True) -> None:
         self.period_s = _check_period(period_s)
         self.spin_s = min(spin_s, period_s)
         self._clock = clock
         self.skipped = 0
+        self._timer = deadline_timer() \
+            if timer and clock in (time.perf_counter, time.monotonic) else None
         self.start()
+
+    @property
+    def kernel_timer(self) -> bool:  # type: ignore[override]
+        """True when deadlines are waited for on the kernel's timer (no spinning)."""
+        return self._timer is not None
 
     def start(self) -> None:
         self._t0 = self._clock()
@@ -142,6 +165,12 @@ class RealTimeClock(Clock):
             self.skipped += missed
             self._k += missed
             deadline += missed * p
+        if self._timer is not None:
+            if deadline - now > _WAKE_EARLY_S:
+                await self._timer.wait_until(deadline - _WAKE_EARLY_S)
+            while self._clock() < deadline:      # the last microseconds, if any
+                await asyncio.sleep(0)
+            return self._clock() - deadline
         coarse = deadline - self.spin_s - now
         if coarse > 0.0:
             await asyncio.sleep(coarse)
@@ -178,6 +207,11 @@ class LockStepClock(Clock):
         #: awaited while held, each time the clock is woken
         self.serve: Callable[[], Awaitable[None]] | None = None
         self.start()
+
+    @property
+    def kernel_timer(self) -> bool:  # type: ignore[override]
+        """Paced on the kernel's timer (a held or free-running clock has no deadlines)."""
+        return self._pace is not None and self._pace.kernel_timer
 
     def start(self) -> None:
         self._k = 0
@@ -249,27 +283,45 @@ class LockStepClock(Clock):
         return 0.0
 
 
-#: Nice value the real-time control loop asks for: ahead of every ordinary job on the machine
-#: (their 0), behind the kernel's own threads. Granted with CAP_SYS_NICE (root, or the
-#: ``RLIMIT_NICE`` a robot cell's account is given); without it the loop runs as it is.
+#: Nice value the real-time control loop asks for when it cannot have a real-time policy: ahead
+#: of every ordinary job on the machine (their 0), behind the kernel's own threads.
 REALTIME_NICE = -10
+#: SCHED_FIFO priority of a control loop that waits on the kernel timer: low among real-time
+#: threads (the kernel's interrupt threads run at 50), above every ordinary job.
+REALTIME_FIFO_PRIORITY = 10
 
 
 @contextlib.contextmanager
-def raised_priority(nice: int = REALTIME_NICE):
-    """The calling thread's scheduling priority raised to ``nice`` while the block runs, where
-    the system permits (Linux: a thread's own nice value; the recorder's and the UI's threads
-    keep theirs); yields True when granted. Restored on exit.
+def raised_priority(nice: int = REALTIME_NICE, fifo_priority: int | None = None):
+    """The calling thread's scheduling raised while the block runs, where the system permits
+    (CAP_SYS_NICE: root, or the ``RLIMIT_RTPRIO``/``RLIMIT_NICE`` a robot cell's account is
+    given); yields how: ``"fifo"`` (SCHED_FIFO at ``fifo_priority``), ``"nice"`` (the nice
+    value ``nice``) or ``""`` (neither permitted: the thread runs as it is). Restored on exit.
+    Linux sets these per thread: the recorder's and the UI's threads keep theirs.
 
-    Why: on a machine loaded by other jobs, a control loop at the same priority shares its
-    core with them, and its 2 ms deadlines slip by a scheduler slice (milliseconds); the
-    device streams then go stale. Not SCHED_FIFO: the loop spins with ``asyncio.sleep(0)``
-    for its last 1.5 ms before each deadline, which a real-time policy would turn into a
-    core taken from everything else."""
+    Why: on a machine loaded by other jobs a control loop at their priority shares its core
+    with them, and its 2 ms deadlines slip by a scheduler slice (milliseconds); the device
+    streams then go stale. SCHED_FIFO only for a loop that sleeps between ticks
+    (:class:`RealTimeClock` on the kernel timer): a real-time thread that spun would take a
+    core from everything else."""
+    if fifo_priority is not None and hasattr(os, "sched_setscheduler"):
+        try:
+            policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+            os.sched_setscheduler(0, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0),
+                                  os.sched_param(fifo_priority))
+        except OSError:                         # not permitted (or no RT time): try nice
+            pass
+        else:
+            try:
+                yield "fifo"
+            finally:
+                with contextlib.suppress(OSError):
+                    os.sched_setscheduler(0, policy, param)
+            return
     try:
         before = os.getpriority(os.PRIO_PROCESS, 0)
     except (AttributeError, OSError):          # no such call on this platform
-        yield False
+        yield ""
         return
     granted = False
     if nice < before:
@@ -279,7 +331,7 @@ def raised_priority(nice: int = REALTIME_NICE):
         except OSError:                         # not permitted: run as we are
             pass
     try:
-        yield granted or nice >= before
+        yield "nice" if granted or nice >= before else ""
     finally:
         if granted:
             with contextlib.suppress(OSError):
@@ -287,10 +339,11 @@ def raised_priority(nice: int = REALTIME_NICE):
 
 
 @contextlib.contextmanager
-def realtime_policy(realtime: bool):
-    """The control loop's real-time policy: the thread's priority raised
-    (:func:`raised_priority`) and the garbage collector kept out of ticks; yields
-    ``collect(n)`` to call in the slack after tick ``n``.
+def realtime_policy(clock: Clock):
+    """The control loop's policy under ``clock``. In real time: the thread's priority raised
+    (:func:`raised_priority`: SCHED_FIFO when the clock waits on the kernel timer, else a
+    nice value) and the garbage collector kept out of ticks. Yields ``collect(n)`` to call in
+    the slack after tick ``n``.
 
     In real time the cyclic collector runs only there (young generation every 50 ticks, older
     every 5000), never in the middle of a tick: a full collection triggered by allocation can
@@ -298,7 +351,7 @@ def realtime_policy(realtime: bool):
     start are frozen out of the collector's sight (``gc.freeze``, which collects nothing
     itself). In lock-step time nothing changes.
     """
-    if not realtime:
+    if not clock.realtime:
         yield lambda n: None
         return
     was_enabled = gc.isenabled()
@@ -310,7 +363,8 @@ def realtime_policy(realtime: bool):
             gc.collect(1 if n % 5000 == 0 else 0)
 
     try:
-        with raised_priority():
+        with raised_priority(fifo_priority=REALTIME_FIFO_PRIORITY if clock.kernel_timer
+                             else None):
             yield collect
     finally:
         gc.unfreeze()

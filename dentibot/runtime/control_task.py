@@ -159,7 +159,7 @@ class Runtime:
         await self.clock.wait_first()
         lateness = 0.0
         n = 0
-        with realtime_policy(self.clock.realtime) as collect:
+        with realtime_policy(self.clock) as collect:
             while not self._stop.is_set():
                 t0 = time.perf_counter()
                 await self.tick(lateness)

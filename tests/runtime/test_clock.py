@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import asyncio
 import time
 
 import pytest
 
 from dentibot.errors import ConfigError
 from dentibot.runtime.clock import DeadlineStats, LockStepClock, RealTimeClock
+from dentibot.runtime.deadline_timer import deadline_timer
 
 
 def test_deadline_stats_quantiles_and_overruns_from_known_lateness():
@@ -55,3 +57,38 @@ def test_period_out_of_range_is_refused_with_field_and_limit():
     with pytest.raises(ConfigError) as e:
         RealTimeClock(0.5)
     assert "control.period_s" in str(e.value) and "0.1" in str(e.value)
+
+
+@pytest.mark.skipif(deadline_timer() is None, reason="no timerfd on this system")
+async def test_the_kernel_timer_wakes_at_the_deadline_without_spinning():
+    """Waiting on the timerfd: never early, and the loop sleeps meanwhile (the process uses
+    a small part of the CPU time that passes, where spinning used all of it)."""
+    c = RealTimeClock(0.002)
+    assert c.kernel_timer
+    cpu0, t0 = time.process_time(), time.perf_counter()
+    lateness = [await c.wait_next() for _ in range(250)]          # 0.5 s
+    wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
+    assert min(lateness) >= 0.0 and wall >= 0.498          # the clock started just before t0
+    assert cpu < 0.5 * wall, (cpu, wall)
+    spin = RealTimeClock(0.002, timer=False)
+    assert not spin.kernel_timer
+    cpu0, t0 = time.process_time(), time.perf_counter()
+    for _ in range(250):
+        await spin.wait_next()
+    assert time.process_time() - cpu0 > cpu                          # it spun
+
+
+async def test_the_timer_serves_other_tasks_while_it_waits():
+    """A task scheduled during the wait runs before the deadline (the loop is not blocked)."""
+    c = RealTimeClock(0.01)
+    seen = []
+
+    async def other():
+        await asyncio.sleep(0.002)
+        seen.append(time.perf_counter())
+
+    task = asyncio.ensure_future(other())
+    await c.wait_next()
+    t_tick = time.perf_counter()
+    await task
+    assert seen and seen[0] < t_tick

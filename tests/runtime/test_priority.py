@@ -6,7 +6,13 @@ import os
 
 import pytest
 
-from dentibot.runtime.clock import REALTIME_NICE, raised_priority, realtime_policy
+from dentibot.runtime.clock import (
+    REALTIME_FIFO_PRIORITY,
+    REALTIME_NICE,
+    LockStepClock,
+    raised_priority,
+    realtime_policy,
+)
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "getpriority"), reason="no priorities here")
 
@@ -29,9 +35,32 @@ def test_raised_where_permitted_and_restored():
         inside = os.getpriority(os.PRIO_PROCESS, 0)
     assert os.getpriority(os.PRIO_PROCESS, 0) == before
     if allowed and before > REALTIME_NICE:
-        assert granted and inside == REALTIME_NICE
+        assert granted == "nice" and inside == REALTIME_NICE
     elif not allowed:
         assert not granted and inside == before
+
+
+def _may_fifo() -> bool:
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except (OSError, AttributeError):
+        return False
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    return True
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setscheduler"), reason="no scheduling policies")
+def test_a_sleeping_loop_gets_sched_fifo_where_permitted_and_gives_it_back():
+    policy = os.sched_getscheduler(0)
+    with raised_priority(fifo_priority=REALTIME_FIFO_PRIORITY) as how:
+        inside = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+    assert os.sched_getscheduler(0) == policy
+    if _may_fifo():
+        # reset on fork: the threads and processes it starts get the ordinary policy
+        reset = getattr(os, "SCHED_RESET_ON_FORK", 0)
+        assert how == "fifo" and inside == (os.SCHED_FIFO | reset, REALTIME_FIFO_PRIORITY)
+    else:
+        assert how in ("nice", "") and inside[0] == policy
 
 
 def test_an_unprivileged_thread_runs_as_it_is(monkeypatch):
@@ -40,12 +69,13 @@ def test_an_unprivileged_thread_runs_as_it_is(monkeypatch):
 
     monkeypatch.setattr(os, "setpriority", refuse)
     before = os.getpriority(os.PRIO_PROCESS, 0)
-    with raised_priority() as granted:
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    with raised_priority(fifo_priority=REALTIME_FIFO_PRIORITY) as granted:
         assert os.getpriority(os.PRIO_PROCESS, 0) == before
-    assert granted is (before <= REALTIME_NICE)
+    assert granted == ("nice" if before <= REALTIME_NICE else "")
 
 
 def test_lock_step_leaves_the_priority_alone():
-    before = os.getpriority(os.PRIO_PROCESS, 0)
-    with realtime_policy(False):
-        assert os.getpriority(os.PRIO_PROCESS, 0) == before
+    before = os.getpriority(os.PRIO_PROCESS, 0), os.sched_getscheduler(0)
+    with realtime_policy(LockStepClock(lambda: None)):
+        assert (os.getpriority(os.PRIO_PROCESS, 0), os.sched_getscheduler(0)) == before
