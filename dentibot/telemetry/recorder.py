@@ -114,7 +114,7 @@ from dentibot.telemetry.schema import (
     validate_row,
 )
 
-__all__ = ["COMPRESSIONS", "McapRecorder", "TelemetryOverflow"]
+__all__ = ["COMPRESSIONS", "ClosedOnExit", "McapRecorder", "TelemetryOverflow"]
 
 log = structlog.get_logger("dentibot.telemetry")
 
@@ -298,7 +298,24 @@ class _Sink:
                 self._stream.truncate(self.pos)
 
 
-class McapRecorder:
+class ClosedOnExit:
+    """A recorder as a context manager: closed "ok" at the end of the block, "aborted" (with
+    the exception) when it raises, without hiding that exception behind a close error."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc is None:
+            self.close("ok")
+            return
+        try:
+            self.close("aborted", f"{exc_type.__name__}: {exc}")
+        except TelemetryError as err:     # do not hide the exception already in flight
+            log.error("telemetry.close_failed", path=str(self.path), error=str(err))
+
+
+class McapRecorder(ClosedOnExit):
     """Record a run to an MCAP file: ``/run`` now, ``/tick`` and ``/events`` as they come,
     ``/run/end`` at :meth:`close`. See the module docstring for what a crash can cost.
 
@@ -622,18 +639,6 @@ class McapRecorder:
         self._wake.set()
         self._thread.join()
         log.warning("telemetry.unfinished", path=str(self.path), ticks_written=self.ticks_written)
-
-    def __enter__(self) -> McapRecorder:  # noqa: PYI034
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc is None:
-            self.close("ok")
-            return
-        try:
-            self.close("aborted", f"{exc_type.__name__}: {exc}")
-        except TelemetryError as err:     # do not hide the exception already in flight
-            log.error("telemetry.close_failed", path=str(self.path), error=str(err))
 
     def _raise_dead(self) -> None:
         if self._error is not None:

@@ -58,7 +58,7 @@ import structlog
 
 from dentibot.errors import ConfigError
 from dentibot.logs import configure_default, configure_logging, logging_settings
-from dentibot.telemetry.recorder import McapRecorder, TelemetryOverflow
+from dentibot.telemetry.recorder import ClosedOnExit, McapRecorder, TelemetryOverflow
 from dentibot.telemetry.schema import END_STATUSES, TelemetryError
 
 __all__ = ["Recorder", "RecorderProcess", "open_recorder"]
@@ -115,9 +115,7 @@ def open_recorder(path: str | os.PathLike[str] | Any, metadata: dict[str, Any] |
     :class:`~dentibot.telemetry.recorder.McapRecorder` (same arguments, same guarantees)."""
     if hasattr(path, "write"):
         return McapRecorder(path, metadata, **options)
-    try:
-        pickle.dumps((metadata, options), _PICKLE)
-    except (pickle.PicklingError, TypeError, AttributeError):
+    if not _pickles((metadata, options)):       # e.g. a view's frames given as a lambda
         return McapRecorder(path, metadata, **options)
     try:
         return RecorderProcess(path, metadata, **options)
@@ -177,7 +175,7 @@ def _take_spare() -> _Child | None:
     return spare
 
 
-class RecorderProcess:
+class RecorderProcess(ClosedOnExit):
     """:class:`~dentibot.telemetry.recorder.McapRecorder` run in a child process (see the
     module docstring). Same constructor arguments (a file path only), same methods
     (``record``, ``event``, ``close``, ``duration_s``, context manager) and counters; the
@@ -425,18 +423,6 @@ class RecorderProcess:
             self._raise_dead()
         return self.end
 
-    def __enter__(self) -> RecorderProcess:  # noqa: PYI034
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc is None:
-            self.close("ok")
-            return
-        try:
-            self.close("aborted", f"{exc_type.__name__}: {exc}")
-        except TelemetryError as err:     # do not hide the exception already in flight
-            log.error("telemetry.close_failed", path=str(self.path), error=str(err))
-
 
 #: what :func:`open_recorder` returns
 Recorder = McapRecorder | RecorderProcess
@@ -448,12 +434,10 @@ def _release(*conns: Connection) -> None:
 
 
 def _picklable(item: tuple[str, Any], path: Path) -> bool:
-    try:
-        pickle.dumps(item, _PICKLE)
-    except (pickle.PicklingError, TypeError, AttributeError) as exc:
-        log.error("telemetry.unserialisable", path=str(path), what=item[0], error=str(exc))
-        return False
-    return True
+    if _pickles(item):
+        return True
+    log.error("telemetry.unserialisable", path=str(path), what=item[0])
+    return False
 
 
 # -- the child process -----------------------------------------------------------------------
