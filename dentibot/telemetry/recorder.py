@@ -114,7 +114,7 @@ from dentibot.telemetry.schema import (
     validate_row,
 )
 
-__all__ = ["COMPRESSIONS", "ClosedOnExit", "McapRecorder", "TelemetryOverflow"]
+__all__ = ["COMPRESSIONS", "McapRecorder", "RecorderBase", "TelemetryOverflow"]
 
 log = structlog.get_logger("dentibot.telemetry")
 
@@ -298,9 +298,22 @@ class _Sink:
                 self._stream.truncate(self.pos)
 
 
-class ClosedOnExit:
-    """A recorder as a context manager: closed "ok" at the end of the block, "aborted" (with
-    the exception) when it raises, without hiding that exception behind a close error."""
+class RecorderBase:
+    """What the in-process recorder and the recorder process share: the run's duration, the
+    overflow flag, and use as a context manager (closed "ok" at the end of the block,
+    "aborted" with the exception when it raises, without hiding that exception behind a close
+    error). Needs ``rows_queued``, ``period_s``, ``_last_t``, ``rows_dropped``, ``close``."""
+
+    def duration_s(self) -> float:
+        """Ticks handed over x period when the rate is known, else the last row's ``t``."""
+        if self.period_s is not None:
+            return self.rows_queued * self.period_s
+        return float(self._last_t)
+
+    @property
+    def overflowed(self) -> bool:
+        """True once a row was dropped because the writer made no room in time."""
+        return self.rows_dropped > 0
 
     def __enter__(self):
         return self
@@ -315,7 +328,7 @@ class ClosedOnExit:
             log.error("telemetry.close_failed", path=str(self.path), error=str(err))
 
 
-class McapRecorder(ClosedOnExit):
+class McapRecorder(RecorderBase):
     """Record a run to an MCAP file: ``/run`` now, ``/tick`` and ``/events`` as they come,
     ``/run/end`` at :meth:`close`. See the module docstring for what a crash can cost.
 
@@ -581,11 +594,6 @@ class McapRecorder(ClosedOnExit):
         return max(self.rows_queued - self._settled, 0)
 
     @property
-    def overflowed(self) -> bool:
-        """True once a row was dropped because the writer made no room in time."""
-        return self.rows_dropped > 0
-
-    @property
     def error(self) -> BaseException | None:
         """What killed the writer thread, or None."""
         return self._error
@@ -593,12 +601,6 @@ class McapRecorder(ClosedOnExit):
     @property
     def closed(self) -> bool:
         return self._closed
-
-    def duration_s(self) -> float:
-        """Ticks queued x period when the rate is known, else the last row's ``t``."""
-        if self.period_s is not None:
-            return self.rows_queued * self.period_s
-        return float(self._last_t)
 
     def close(self, status: str = "ok", reason: str = "",
               duration_s: float | None = None) -> dict[str, Any] | None:

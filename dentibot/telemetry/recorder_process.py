@@ -58,7 +58,7 @@ import structlog
 
 from dentibot.errors import ConfigError
 from dentibot.logs import configure_default, configure_logging, logging_settings
-from dentibot.telemetry.recorder import ClosedOnExit, McapRecorder, TelemetryOverflow
+from dentibot.telemetry.recorder import McapRecorder, RecorderBase, TelemetryOverflow
 from dentibot.telemetry.schema import END_STATUSES, TelemetryError
 
 __all__ = ["Recorder", "RecorderProcess", "open_recorder"]
@@ -175,7 +175,7 @@ def _take_spare() -> _Child | None:
     return spare
 
 
-class RecorderProcess(ClosedOnExit):
+class RecorderProcess(RecorderBase):
     """:class:`~dentibot.telemetry.recorder.McapRecorder` run in a child process (see the
     module docstring). Same constructor arguments (a file path only), same methods
     (``record``, ``event``, ``close``, ``duration_s``, context manager) and counters; the
@@ -370,10 +370,6 @@ class RecorderProcess(ClosedOnExit):
         return max(self.rows_queued - self._settled, 0)
 
     @property
-    def overflowed(self) -> bool:
-        return self.rows_dropped > 0
-
-    @property
     def error(self) -> BaseException | None:
         self._read_acks()
         return self._dead
@@ -386,12 +382,6 @@ class RecorderProcess(ClosedOnExit):
     def pid(self) -> int | None:
         """The recorder process's id."""
         return self._proc.pid
-
-    def duration_s(self) -> float:
-        """Ticks handed over x period when the rate is known, else the last row's ``t``."""
-        if self.period_s is not None:
-            return self.rows_queued * self.period_s
-        return float(self._last_t)
 
     def close(self, status: str = "ok", reason: str = "",
               duration_s: float | None = None) -> dict[str, Any] | None:
