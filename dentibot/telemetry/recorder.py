@@ -302,7 +302,9 @@ class RecorderBase:
     """What the in-process recorder and the recorder process share: the run's duration, the
     overflow flag, and use as a context manager (closed "ok" at the end of the block,
     "aborted" with the exception when it raises, without hiding that exception behind a close
-    error). Needs ``rows_queued``, ``period_s``, ``_last_t``, ``rows_dropped``, ``close``."""
+    error), the overflow that drops a row loudly. Needs ``rows_queued``, ``period_s``,
+    ``_last_t``, ``rows_dropped``, ``_settled``, ``rows_flushed``, ``max_wait_s``, ``path``,
+    ``close``."""
 
     def duration_s(self) -> float:
         """Ticks handed over x period when the rate is known, else the last row's ``t``."""
@@ -314,6 +316,21 @@ class RecorderBase:
     def overflowed(self) -> bool:
         """True once a row was dropped because the writer made no room in time."""
         return self.rows_dropped > 0
+
+    #: what writes the file, in messages
+    WRITER = "the writer"
+
+    def _overflow(self, row: Any) -> None:
+        self.rows_dropped += 1
+        at_risk = self.rows_queued - self._settled
+        tick = row.get("tick") if isinstance(row, dict) else None
+        detail = (f"{self.WRITER} made no room in {self.max_wait_s:g} s ({at_risk} ticks waiting "
+                  f"to reach the file, {self.rows_flushed} on disk): tick {tick} dropped, "
+                  f"{self.rows_dropped} row(s) lost so far; the recording has a hole")
+        if self.rows_dropped <= _LOG_FIRST:
+            log.error("telemetry.overflow", path=str(self.path), tick=tick,
+                      rows_dropped=self.rows_dropped, at_risk=at_risk)
+        raise TelemetryOverflow(self.path, detail, self.rows_dropped)
 
     def __enter__(self):
         return self
@@ -558,18 +575,6 @@ class McapRecorder(RecorderBase):
                 self._room.wait(remaining)
         if self._error is not None:
             self._raise_dead()
-
-    def _overflow(self, row: Any) -> None:
-        self.rows_dropped += 1
-        at_risk = self.rows_queued - self._settled
-        tick = row.get("tick") if isinstance(row, dict) else None
-        detail = (f"the writer made no room in {self.max_wait_s:g} s ({at_risk} ticks waiting "
-                  f"to reach the file, {self.rows_flushed} on disk): tick {tick} dropped, "
-                  f"{self.rows_dropped} row(s) lost so far; the recording has a hole")
-        if self.rows_dropped <= _LOG_FIRST:
-            log.error("telemetry.overflow", path=str(self.path), tick=tick,
-                      rows_dropped=self.rows_dropped, at_risk=at_risk)
-        raise TelemetryOverflow(self.path, detail, self.rows_dropped)
 
     def event(self, kind: str, detail: str = "", *, t: float | None = None,
               tick: int | None = None) -> None:

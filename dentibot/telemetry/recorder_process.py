@@ -183,6 +183,8 @@ class RecorderProcess(RecorderBase):
     :meth:`close`.
     """
 
+    WRITER = "the recorder process"
+
     def __init__(self, path: str | os.PathLike[str], metadata: dict[str, Any] | None = None,
                  **options: Any) -> None:
         if hasattr(path, "write"):
@@ -340,16 +342,6 @@ class RecorderProcess(RecorderBase):
             self._read_acks(remaining)
         if self._dead is not None:
             self._raise_dead()
-
-    def _overflow(self, row: Any) -> None:
-        self.rows_dropped += 1
-        at_risk = self.rows_queued - self._settled
-        tick = row.get("tick") if isinstance(row, dict) else None
-        raise TelemetryOverflow(self.path, f"the recorder process made no room in "
-                                f"{self.max_wait_s:g} s ({at_risk} ticks waiting to reach the "
-                                f"file, {self._counters['rows_flushed']} on disk): tick {tick} dropped, "
-                                f"{self.rows_dropped} row(s) lost so far; the recording has "
-                                f"a hole", self.rows_dropped)
 
     def _raise_dead(self) -> None:
         if self._dead is not None:

@@ -150,3 +150,24 @@ def test_the_budget_holds_with_back_pressure(tmp_path):
     rec.close()
     assert rec.at_risk_max <= 5 and rec.backpressure_waits > 0 and rec.rows_dropped == 0
     assert len(read_recording(tmp_path / "a.mcap").rows) == 600
+
+
+def test_a_stopped_recorder_process_overflows_loudly_and_drops_nothing_silently(tmp_path):
+    """The child frozen (SIGSTOP): the parent waits max_wait_s at the budget, then drops the
+    row and raises; the process resumed, the recording goes on and says what it lost."""
+    from dentibot.telemetry.recorder import TelemetryOverflow
+
+    rec = RecorderProcess(tmp_path / "a.mcap", dict(META), validate=False, max_queue=5,
+                          max_wait_s=0.2)
+    os.kill(rec.pid, signal.SIGSTOP)
+    try:
+        with pytest.raises(TelemetryOverflow, match="the recorder process made no room in "
+                                                    "0.2 s") as err:
+            for i in range(6):
+                rec.record(real_row(i))
+        assert err.value.rows_dropped == 1 and rec.overflowed and rec.rows_queued == 5
+    finally:
+        os.kill(rec.pid, signal.SIGCONT)
+    rec.record(real_row(6))
+    rec.close()
+    assert [r["tick"] for r in read_recording(tmp_path / "a.mcap").rows] == [0, 1, 2, 3, 4, 6]
