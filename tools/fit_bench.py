@@ -91,8 +91,18 @@ def fit_platform(trials: pd.DataFrame, traj: pd.DataFrame) -> dict:
     A[np.arange(len(phi)), (i + 1) % n] += f
     knots, *_ = np.linalg.lstsq(A, xyz, rcond=None)
     knots -= knots[0]                                   # the loop starts at rest
-    resid = A @ knots - (xyz - xyz.mean(0) + (A @ knots).mean(0) * 0)
     r = A @ knots - xyz
+    # the squares' own wander: each square's deviation from the loop, smoothed over 1/12 of
+    # the loop (what is faster is the motion capture's noise), rms per square, median
+    wander, fast, first = [], [], 0
+    for p in pts:
+        d = -r[first:first + len(p)]
+        first += len(p)
+        w = max(len(d) // 12, 1)
+        sm = np.column_stack([np.convolve(d[:, k] - d[:, k].mean(), np.ones(w) / w, "same")
+                              for k in range(3)])
+        wander.append(sm.std(0))
+        fast.append((d - d.mean(0) - sm).std(0))
     durs = [float(trials[f"sq{k}_dur_s"].median()) for k in (1, 2, 3, 4)]
     pauses = [float(trials[f"pause{k}_s"].median()) for k in (1, 2, 3)] \
         if "pause1_s" in trials else None
@@ -100,6 +110,7 @@ def fit_platform(trials: pd.DataFrame, traj: pd.DataFrame) -> dict:
         pauses = [float((trials[f"sq{k + 1}_t0_s"] - trials[f"sq{k}_t0_s"]
                          - trials[f"sq{k}_dur_s"]).median()) for k in (1, 2, 3)]
     return {"knots": knots, "rms_mm": np.sqrt((r ** 2).mean(0)), "durations_s": durs,
+            "wander_mm": np.median(wander, axis=0), "fast_mm": np.median(fast, axis=0),
             "pauses_s": pauses,
             "v_eff": [float(trials[f"sq{k}_v_eff_mm_s"].median()) for k in (1, 2, 3, 4)]}
 
@@ -107,20 +118,40 @@ def fit_platform(trials: pd.DataFrame, traj: pd.DataFrame) -> dict:
 def fit_torque(trials: pd.DataFrame, traj: pd.DataFrame) -> dict:
     """Logged file torque (eq 5.4, Km GR I): free-running level (median over B, at rest
     and moving), motor-off level (A), the wander (std of B), and the torque per N of the
-    tip pressed onto the canal bottom (C: least squares of torque - free level on the
-    compressive contact force beyond the seated 0.5 N)."""
-    b = traj[traj.config == "B"].file_torque_mNm
+    tip pressed onto the canal bottom: least squares of torque - free level on the
+    compressive contact force in B, where the turning file stays seated at the bottom and is
+    pressed with 1 N and more (up to about 3 N while the root rises onto it). C's peaks come
+    when the file re-enters the canal after detaching: the flutes' engagement with the walls
+    (the canal model's cutting torque), not the bottom."""
+    b = traj[traj.config == "B"]
     a = traj[traj.config == "A"].file_torque_mNm
-    c = traj[traj.config == "C"]
-    free = float(b.median())
-    press = np.maximum(-c.contact_h_Fz_N.to_numpy(), 0.0)
-    y = c.file_torque_mNm.to_numpy() - free
-    # the wedged file releases slowly (the torque outlasts the push), so the instantaneous
-    # least squares underestimates the peaks: fit the upper percentiles instead
-    k = float((np.percentile(y, 99) ) / np.percentile(press, 99))
-    r = y - k * press
-    return {"free_mnm": free, "off_mnm": float(a.median()), "wander_mnm": float(b.std()),
-            "press_mnm_per_n": k, "press_rms_mnm": float(np.sqrt(np.mean(r ** 2)))}
+    free = float(b.file_torque_mNm.median())
+    press = np.maximum(-b.contact_h_Fz_N.to_numpy(), 0.0)
+    y = b.file_torque_mNm.to_numpy() - free
+    x = press - press.mean()
+    k = float(np.dot(x, y - y.mean()) / np.dot(x, x))
+    r = y - y.mean() - k * x
+    return {"free_mnm": free, "off_mnm": float(a.median()),
+            "wander_mnm": float(b.file_torque_mNm.std()), "press_mnm_per_n": k,
+            "press_p99_n": float(np.percentile(press, 99)),
+            "press_rms_mnm": float(np.sqrt(np.mean(r ** 2)))}
+
+
+def holder_slopes(traj: pd.DataFrame) -> dict:
+    """The tip's offset from the platform against the admittance input force, per platform
+    axis (least-squares slope, mm per N, during the squares): the lateral compliance the
+    file meets, holder and tracking together. The simulated bench is compared on the same
+    slopes (its holder's compliances are swept against them)."""
+    out = {}
+    for cfg, g in traj[traj.square > 0].groupby("config"):
+        sl = []
+        for ax in "xy":
+            x = g[f"force_in_{ax}_N"].to_numpy()
+            y = g[f"rel_tip_{ax}_mm"].to_numpy()
+            x, y = x - x.mean(), y - y.mean()
+            sl.append(float(np.dot(x, y) / np.dot(x, x)))
+        out[cfg] = sl
+    return out
 
 
 def fit_noise(traj: pd.DataFrame) -> dict:
@@ -183,10 +214,17 @@ def main(argv=None) -> int:
           f"{pl['rms_mm'][2]:.2f} mm; durations {[round(d, 2) for d in pl['durations_s']]} s;"
           f" pauses {[round(p, 2) for p in pl['pauses_s']]} s; v_eff "
           f"{[round(v, 2) for v in pl['v_eff']]} mm/s")
+    print(f"  wander per square (smoothed over 1/12 loop, rms, median) x/y/z "
+          f"{pl['wander_mm'][0]:.2f}/{pl['wander_mm'][1]:.2f}/{pl['wander_mm'][2]:.2f} mm; "
+          f"faster {pl['fast_mm'][0]:.2f}/{pl['fast_mm'][1]:.2f}/{pl['fast_mm'][2]:.2f} mm")
     tq = fit_torque(trials, traj)
     print(f"torque reading: free running {tq['free_mnm']:.2f} mNm, motor off "
           f"{tq['off_mnm']:.2f} mNm, wander std {tq['wander_mnm']:.2f} mNm, pressed "
-          f"{tq['press_mnm_per_n']:.2f} mNm/N (rms residual {tq['press_rms_mnm']:.2f} mNm)")
+          f"{tq['press_mnm_per_n']:.2f} mNm/N in B, pressed up to {tq['press_p99_n']:.1f} N "
+          f"(p99; rms residual {tq['press_rms_mnm']:.2f} mNm)")
+    hs = holder_slopes(traj)
+    print("tip offset per N of admittance input, during squares (x, y mm/N): "
+          + "; ".join(f"{c} {x:.2f}, {y:.2f}" for c, (x, y) in sorted(hs.items())))
     nz = fit_noise(traj)
     print(f"F/T noise at 100 Hz: Fx {nz['noise_n'][0]:.3f} N, Fy {nz['noise_n'][1]:.3f} N")
     if not a.skip_axial:

@@ -33,11 +33,12 @@ class BenchRecord:
 
 def bench_record(config: str, k: float, b6: float, rotate: bool, *, seed: int = 1,
                  settle_s: float = 4.0, tail_s: float = 6.0,
-                 hold_tilt: bool = True) -> BenchRecord:
+                 hold_tilt: bool = False) -> BenchRecord:
     """Run ``config`` (admittance gain ``k``, ``b6`` about the file axis, the file turning
     when ``rotate``) on :data:`~dentibot.sim.bench_physics.BENCH`'s world, seated at the
     working length for ``settle_s`` before the first square and ``tail_s`` after the last;
-    ``hold_tilt``: the handpiece's tilt held (b4 = b5 infinite) instead of the bench's 80."""
+    ``hold_tilt``: the handpiece's tilt held (b4 = b5 infinite) instead of the bench's 80
+    (for comparison: the LED-based and tip-based distances are then the same)."""
     bp = BENCH
     preshaped = CanalParams(initial_apical_mm=CanalParams.target_apical_mm,
                             initial_taper=CanalParams.target_taper)

@@ -538,8 +538,6 @@ BENCH_SETUP = {"A": (500.0, 80.0, False), "B": (500.0, math.inf, True),
                "C": (500.0, math.inf, True), "C_K250": (250.0, math.inf, True)}
 #: Chatter band (Hz) of ``Fz_chatter_rms_N``.
 CHATTER_BAND_HZ = (1.5, 6.0)
-#: Hold the handpiece's orientation in the bench run (see :func:`run_bench`).
-BENCH_HOLD_TILT = True
 
 
 @dataclass(frozen=True)
@@ -564,11 +562,11 @@ def run_bench(spec: BenchSpec) -> dict:
     from dentibot.app.bench_run import bench_record
 
     k, b6, rotate = BENCH_SETUP[spec.config]
-    # The bench ran b4 = b5 = 80 about the tip; on the simulated world the handpiece's tilt
-    # then drifts without bound (tens of degrees in a minute, the bench: 4-8 deg), a model
-    # gap not yet found: the bench run holds the orientation (rx, ry off).
+    # b4 = b5 = 80 about the tip, as the bench ran: the canal's lateral loads act along the
+    # file (a couple about the tip), which bounds the tilt (1-8 deg over a run; the bench:
+    # 4-8 deg).
     r = bench_record(spec.config, k, b6, rotate, seed=spec.seed, settle_s=spec.settle_s,
-                     tail_s=spec.tail_s, hold_tilt=BENCH_HOLD_TILT)
+                     tail_s=spec.tail_s)
     return bench_figures(r.rec, r.starts, r.ends, r.stewart, r.led_behind_tip_mm,
                          k / 80.0, r.dt)
 

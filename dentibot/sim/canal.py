@@ -87,8 +87,10 @@ class CanalParams:
     # Lateral compliance of the tooth's support (mm/N): the tooth moves sideways as a body
     # under the file's loads (a patient's periodontal ligament, a phantom's holder and
     # platform). It softens a file pushed sideways and leaves a couple alone. 0: a rigid
-    # holder (the training block's default).
+    # holder (the training block's default). ``support_y_mm_per_n``: along the phantom's y
+    # axis, where it differs (a holder clamped on one side); None: the same.
     support_mm_per_n: float = 0.0
+    support_y_mm_per_n: float | None = None
     # assumption: tip outside the lumen by more than this lands on the chamber floor.
     access_margin_mm: float = 1.0
     # assumption: canal bottom / chamber floor axial stiffness (N/mm).
@@ -152,6 +154,9 @@ class CanalParams:
                      "support_mm_per_n"):
             if not getattr(self, name) >= 0.0:
                 raise ConfigError(f"canal.{name}", getattr(self, name), ">= 0")
+        if self.support_y_mm_per_n is not None and not self.support_y_mm_per_n >= 0.0:
+            raise ConfigError("canal.support_y_mm_per_n", self.support_y_mm_per_n,
+                              ">= 0 (or none: the same as support_mm_per_n)")
         if self.curve_start_mm is not None and not (
             0.0 <= self.curve_start_mm < self.working_length_mm and self.curve_radius_mm > 0.0
         ):
@@ -443,6 +448,9 @@ class Canal:
             pts.append((complex(ez[j]), float(net[j]), k, s_tip - float(s[j]), float(g[j])))
         npt = len(pts)
         sup = p.support_mm_per_n                         # the tooth moves as a body on it
+        sup_y = sup if p.support_y_mm_per_n is None else p.support_y_mm_per_n
+        # an anisotropic support: its part beyond the x compliance acts along y only
+        extra_y = sup_y - sup
         beam = f.beam
         memo: dict = {}
 
@@ -453,6 +461,11 @@ class Canal:
                 v = memo[k] = beam.compliance_mm_n(pts[k[0]][3], pts[k[1]][3]) + sup
             return v
 
+        def coupling(i: int, j: int) -> float:
+            """Displacement along n_i per unit load along n_j."""
+            c = comp(i, j) * (normals[i] * normals[j].conjugate()).real
+            return c + extra_y * normals[i].imag * normals[j].imag if extra_y else c
+
         normals = [e / abs(e) if abs(e) > 1e-9 else 0j for e, *_ in pts]
         active = [pts[i][1] > 0.0 and normals[i] != 0j for i in range(npt)]
         lam = [0.0] * npt
@@ -461,11 +474,11 @@ class Canal:
             lam = [0.0] * npt
             if len(idx) == 1:
                 i = idx[0]
-                lam[i] = pts[i][1] / (1.0 / pts[i][2] + comp(i, i))
+                lam[i] = pts[i][1] / (1.0 / pts[i][2] + coupling(i, i))
             elif len(idx) == 2:
                 i, j = idx
-                cij = comp(i, j) * (normals[i] * normals[j].conjugate()).real
-                a00, a11 = 1.0 / pts[i][2] + comp(i, i), 1.0 / pts[j][2] + comp(j, j)
+                cij = coupling(i, j)
+                a00, a11 = 1.0 / pts[i][2] + coupling(i, i), 1.0 / pts[j][2] + coupling(j, j)
                 det = a00 * a11 - cij * cij
                 lam[i] = (a11 * pts[i][1] - cij * pts[j][1]) / det
                 lam[j] = (a00 * pts[j][1] - cij * pts[i][1]) / det
@@ -478,6 +491,8 @@ class Canal:
                 if active[i]:
                     continue
                 w = sum((-lam[k] * normals[k] * comp(i, k) for k in idx), 0j)
+                if extra_y:
+                    w += 1j * extra_y * sum(-lam[k] * normals[k].imag for k in idx)
                 e = pts[i][0] + w
                 if abs(e) + pts[i][4] > 0.0 and abs(e) > 1e-9:   # bent into the wall
                     normals[i] = e / abs(e)

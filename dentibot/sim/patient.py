@@ -110,16 +110,23 @@ class BenchSquarePath:
     the loop are all in the knots. The Stewart frame is turned ``frame_yaw_deg`` about base z
     from the robot's base -y axis (x_S = Rz(yaw) (0, -1, 0)); z_S is base z. Before
     ``start_s`` and after the end the phantom rests at the origin.
+
+    No two squares of a real platform are the same: ``wander_mm`` (rms per Stewart axis) adds
+    to each square its own smooth deviation from the loop, piecewise linear through
+    ``wander_points`` random offsets around the loop (zero at its start and end, so every
+    square still starts and ends at rest), drawn from ``rng``.
     """
 
     def __init__(self, knots_mm, durations_s, pauses_s, frame_yaw_deg: float = 0.0,
-                 start_s: float = 0.0) -> None:
+                 start_s: float = 0.0, wander_mm=(0.0, 0.0, 0.0), wander_points: int = 12,
+                 rng: np.random.Generator | None = None) -> None:
         k = np.asarray(knots_mm, float)
         if k.ndim != 2 or k.shape[1] != 3 or len(k) < 4:
             raise ValueError("knots_mm: n x 3 (x, y, z), n >= 4")
         self.knots = np.vstack([k, k[:1]])            # closed
         self.n = len(k)
         self.durations_s = tuple(float(d) for d in durations_s)
+        self._wander = self._draw_wander(wander_mm, wander_points, rng)
         pauses = tuple(float(p) for p in pauses_s)
         if len(pauses) != len(self.durations_s) - 1:
             raise ValueError("one pause between consecutive squares")
@@ -134,19 +141,48 @@ class BenchSquarePath:
         self.ex, self.ey = (s, -c, 0.0), (c, s, 0.0)
         self._k = self.knots.tolist()
 
+    def _draw_wander(self, rms_mm, points: int, rng) -> list | None:
+        """Per square, the wander's offsets (mm) at ``points + 1`` phases around the loop
+        (first and last zero); None without wander. Linear interpolation between independent
+        offsets has 2/3 of their variance on average: they are drawn with rms / sqrt(2/3)."""
+        rms = np.asarray(rms_mm, float)
+        if rms.shape != (3,) or np.any(rms < 0.0):
+            raise ValueError(f"wander_mm: three rms values >= 0 (mm), got {rms_mm!r}")
+        if not rms.any():
+            return None
+        if points < 2:
+            raise ValueError(f"wander_points: at least 2, got {points}")
+        rng = rng if rng is not None else np.random.default_rng(0)
+        out = []
+        for _ in self.durations_s:
+            w = np.zeros((points + 1, 3))
+            w[1:-1] = rng.standard_normal((points - 1, 3)) * rms / math.sqrt(2.0 / 3.0)
+            out.append(w.tolist())
+        return out
+
     def stewart_mm(self, t: float) -> tuple[float, float, float]:
         """Platform position (mm, Stewart frame) at world time ``t``."""
         t -= self.start_s
         if t <= 0.0 or t >= self.duration_s:
             return (0.0, 0.0, 0.0)
-        for t0, d in zip(self.square_starts_s, self.durations_s):
+        for j, (t0, d) in enumerate(zip(self.square_starts_s, self.durations_s)):
             if t0 <= t < t0 + d:
-                u = (t - t0) / d * self.n
+                phase = (t - t0) / d
+                u = phase * self.n
                 i = int(u)
                 f = u - i
                 a, b = self._k[i], self._k[i + 1]
-                return (a[0] + (b[0] - a[0]) * f, a[1] + (b[1] - a[1]) * f,
-                        a[2] + (b[2] - a[2]) * f)
+                p = [a[0] + (b[0] - a[0]) * f, a[1] + (b[1] - a[1]) * f,
+                     a[2] + (b[2] - a[2]) * f]
+                if self._wander is not None:
+                    w = self._wander[j]
+                    u = phase * (len(w) - 1)
+                    i = int(u)
+                    f = u - i
+                    a, b = w[i], w[i + 1]
+                    for k in range(3):
+                        p[k] += a[k] + (b[k] - a[k]) * f
+                return (p[0], p[1], p[2])
         return tuple(self._k[0])
 
     def offset_mm(self, t: float) -> tuple[float, float, float]:

@@ -2,6 +2,9 @@
 
 import math
 
+import numpy as np
+import pytest
+
 from dentibot.control.kinematics import Meca500
 from dentibot.sim.arm import ArmParams, SimArmModel
 from dentibot.sim.bench_physics import BENCH, axial_chase
@@ -69,3 +72,53 @@ def test_fz_oscillation_emerges_at_the_bottom():
     t = [0.0, 5.0]
     r = axial_chase(t, [0.0, 0.0], "A")
     assert abs(r["fz_h_n"][-1] + 1.0) < 0.3
+
+
+def _loop_deviation(path, square, n=400):
+    """The path's deviation from its mean loop over one square (n samples, Stewart mm)."""
+    t0, d = path.square_starts_s[square], path.durations_s[square]
+    plain = BenchSquarePath(path.knots[:-1], path.durations_s,
+                            [b - a - dd for a, b, dd in zip(path.square_starts_s,
+                                                            path.square_starts_s[1:],
+                                                            path.durations_s)])
+    ts = [t0 + d * i / n for i in range(n)]
+    return np.array([np.subtract(path.stewart_mm(t), plain.stewart_mm(t)) for t in ts])
+
+
+def test_platform_wander_has_its_rms_and_keeps_every_square_starting_at_rest():
+    """Over many squares the wander's rms per axis is the one asked for (linear interpolation
+    between independent offsets drawn with rms / sqrt(2/3) has the asked variance on
+    average; the two end segments, towards a zero offset, have half of it: 11/12 of it over
+    12 segments), every square starts and ends on the loop, and a seed gives the same
+    path."""
+    rms = (0.5, 0.4, 0.1)
+    n_sq = 300
+    knots = BENCH.platform_knots_mm
+
+    def path(seed):
+        return BenchSquarePath(knots, [10.0] * n_sq, [1.0] * (n_sq - 1), wander_mm=rms,
+                               rng=np.random.default_rng(seed))
+
+    p = path(7)
+    dev = np.concatenate([_loop_deviation(p, k, 120) for k in range(n_sq)])
+    got = np.sqrt((dev ** 2).mean(0))
+    expected = np.array(rms) * math.sqrt(11.0 / 12.0)
+    assert np.allclose(got, expected, rtol=0.06), (got, expected)
+    for k in (0, 5, n_sq - 1):
+        t0, d = p.square_starts_s[k], p.durations_s[k]
+        assert p.stewart_mm(t0) == pytest.approx(knots[0], abs=1e-12)
+        assert p.stewart_mm(t0 + d - 1e-9) == pytest.approx(knots[0], abs=1e-6)
+    assert path(7).stewart_mm(12.3) == p.stewart_mm(12.3)
+    assert path(8).stewart_mm(12.3) != p.stewart_mm(12.3)
+
+
+def test_platform_without_wander_runs_the_loop_every_square():
+    p = BenchSquarePath(BENCH.platform_knots_mm, [10.0, 10.0], [1.0])
+    a = [p.stewart_mm(0.5 + 9.0 * i / 50) for i in range(50)]
+    b = [p.stewart_mm(11.5 + 9.0 * i / 50) for i in range(50)]
+    assert np.allclose(a, b, atol=1e-9)
+
+
+def test_platform_wander_rejects_bad_values():
+    with pytest.raises(ValueError, match="wander_mm"):
+        BenchSquarePath(BENCH.platform_knots_mm, [10.0], [], wander_mm=(0.1, -0.1, 0.0))

@@ -154,6 +154,39 @@ def _interact(tilt_deg: float, offset_mm: float, depth_mm: float = 3.0, **canal)
                           NiTiFile(), 0.002)
 
 
+def _push(direction_deg: float, offset_mm: float = 0.3, **canal):
+    """The file's tip ``offset_mm`` off the centreline towards ``direction_deg`` from {P}'s x
+    axis, the file parallel to the canal, 3 mm deep: the lateral force's magnitude (N)."""
+    from dentibot.sim.canal import Canal
+
+    c = Canal(CanalParams(**canal))
+    c._entered, c._last_depth = True, 3.0
+    a = np.radians(direction_deg)
+    it = c.interact((offset_mm * np.cos(a), offset_mm * np.sin(a), 3.0), (0.0, 0.0, 1.0),
+                    NiTiFile(), 0.002)
+    return float(np.linalg.norm(it.f_lat))
+
+
+def test_an_anisotropic_support_is_its_axis_compliance_along_each_axis():
+    """A holder softer along {P}'s y (0.5 mm/N along x, 2.0 along y): pushed along x the file
+    loads it as an isotropic 0.5 mm/N support, along y as a 2.0 one. At 45 deg the compliance
+    along the push is 0.5 cos^2 + 2.0 sin^2 = 1.25 mm/N; the tooth also moves across the push
+    (more along y), so the second contact meets the wall a little off it: within 3 % of an
+    isotropic 1.25 mm/N support."""
+    aniso = {"support_mm_per_n": 0.5, "support_y_mm_per_n": 2.0}
+    assert _push(0.0, **aniso) == pytest.approx(_push(0.0, support_mm_per_n=0.5), rel=1e-9)
+    assert _push(90.0, **aniso) == pytest.approx(_push(90.0, support_mm_per_n=2.0), rel=1e-9)
+    assert _push(45.0, **aniso) == pytest.approx(_push(45.0, support_mm_per_n=1.25), rel=0.03)
+    assert _push(90.0, **aniso) < 0.5 * _push(0.0, **aniso)
+
+
+def test_a_negative_support_compliance_is_refused():
+    from dentibot.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="support_y_mm_per_n"):
+        CanalParams(support_y_mm_per_n=-1.0)
+
+
 def test_a_file_tilted_in_the_canal_is_turned_by_a_couple_towards_its_axis():
     """Tip on the centreline, file turned 10 deg: its line leaves the lumen near the orifice
     (0.53 mm off at 3 mm up) and the bent file presses the far wall at the tip. The walls push
