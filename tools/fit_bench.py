@@ -154,6 +154,32 @@ def holder_slopes(traj: pd.DataFrame) -> dict:
     return out
 
 
+def platform_turn(traj: pd.DataFrame, led_mm: float = 44.0) -> dict:
+    """The platform's turn as it travels (during the squares, per configuration): the
+    tip's offset from the platform's measured centre on its travel and the admittance input
+    force together (least squares: y on x travel and x on z travel, mm per mm), the LED's
+    offset from the tip on the travel (the handpiece turned with the canal). A roll about
+    x_S of r rad per mm of x travel about a centre h above the canal's bottom moves the tip
+    h r across and the LED, ``led_mm`` up the file, -led_mm r: h = led_mm * tip / -LED,
+    r = tip / h (medians over the configurations)."""
+    out = {}
+    for cfg, g in traj[traj.square > 0].groupby("config"):
+        p = g[[f"platform_{a}_mm" for a in "xyz"]].to_numpy()
+        f = g[[f"force_in_{a}_N" for a in "xyz"]].to_numpy()
+        x = np.column_stack([p, f, np.ones(len(g))])
+        ty, *_ = np.linalg.lstsq(x, g.rel_tip_y_mm.to_numpy(), rcond=None)
+        tx, *_ = np.linalg.lstsq(x, g.rel_tip_x_mm.to_numpy(), rcond=None)
+        xp = np.column_stack([p, np.ones(len(g))])
+        ly, *_ = np.linalg.lstsq(xp, (g.robot_led_y_mm - g.tip_y_mm).to_numpy(), rcond=None)
+        lx, *_ = np.linalg.lstsq(xp, (g.robot_led_x_mm - g.tip_x_mm).to_numpy(), rcond=None)
+        out[cfg] = {"tip_y_per_x": ty[0], "tip_x_per_z": tx[2], "led_y_per_x": ly[0],
+                    "led_x_per_z": lx[2]}
+    tip = float(np.median([v["tip_y_per_x"] for v in out.values()]))
+    led = float(np.median([v["led_y_per_x"] for v in out.values()]))
+    h = led_mm * tip / -led
+    return {"per_config": out, "centre_above_tip_mm": h, "roll_rad_per_mm": tip / h}
+
+
 def fit_noise(traj: pd.DataFrame) -> dict:
     """F/T noise: std of the contact force in {H} at rest before the first square, x and y
     (20 Hz means of 5 samples: times sqrt(5) for the 100 Hz samples)."""
@@ -225,6 +251,13 @@ def main(argv=None) -> int:
     hs = holder_slopes(traj)
     print("tip offset per N of admittance input, during squares (x, y mm/N): "
           + "; ".join(f"{c} {x:.2f}, {y:.2f}" for c, (x, y) in sorted(hs.items())))
+    pt = platform_turn(traj)
+    print("platform turn (mm per mm of travel): " + "; ".join(
+        f"{c} tip y/x {v['tip_y_per_x']:.3f}, LED y/x {v['led_y_per_x']:.3f}, tip x/z "
+        f"{v['tip_x_per_z']:.3f}, LED x/z {v['led_x_per_z']:.3f}"
+        for c, v in sorted(pt["per_config"].items())))
+    print(f"  roll about x_S {pt['roll_rad_per_mm']:.4f} rad per mm of x, about a centre "
+          f"{pt['centre_above_tip_mm']:.1f} mm above the canal's bottom")
     nz = fit_noise(traj)
     print(f"F/T noise at 100 Hz: Fx {nz['noise_n'][0]:.3f} N, Fy {nz['noise_n'][1]:.3f} N")
     if not a.skip_axial:

@@ -85,7 +85,7 @@ def bench_record(config: str, k: float, b6: float, rotate: bool, *, seed: int = 
             rec["t"].append(w.t)
             rec["tip"].append(w.tip_0)
             rec["axis"].append(w.axis_0)
-            rec["root"].append(w.phantom_origin_0())
+            rec["root"].append(path.centre_at(w.t))      # where the bench measured it
             rec["fh"].append(f6)
             rec["vcmd"].append(R @ cmd.twist[:3])
             rec["fz_des"].append(fz)

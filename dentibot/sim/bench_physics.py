@@ -110,6 +110,21 @@ class BenchPhysics:
     # (0.24/0.23/0.11 mm) is left to the motion capture's noise. Drawn per square from the
     # world's seed (:class:`~dentibot.sim.patient.BenchSquarePath`).
     platform_wander_mm: tuple = (0.53, 0.41, 0.13)
+    # The platform turns as it moves: on the recordings the tip's offset from the platform's
+    # measured centre follows the platform's own travel across it (least squares during the
+    # squares on travel and admittance input force together, A/B/C: -0.061/-0.054/-0.063 mm
+    # of y per mm of x travel), and the handpiece, turned with the canal, moves its LED the
+    # other way (0.136/0.116/0.138 mm of y per mm of x). A roll about x_S proportional to
+    # the x travel, about a centre ``platform_centre_above_tip_mm`` above the canal's
+    # bottom, gives both: the tip moves h * roll across, the LED (44 mm up the file)
+    # 44 * roll the other way, so h = 44 * 0.06 / 0.13 = 20 mm and roll = -0.06 / 20 rad per
+    # mm of x. No pitch: the tip's x offset also follows the z travel (-0.05 mm per mm),
+    # but the LED's x does not (0.02 mm per mm, where a pitch about the same centre would
+    # give 0.13): that part is the x lag of the legs, and a pitch put the simulated rel_x
+    # out of range (B 4.5 mm, real 1.9-3.0). The tool prints these slopes and -0.0031 rad
+    # per mm about a centre 19.6 mm up (rounded here to -0.0030 and 20 mm).
+    platform_tilt_rad_per_mm: tuple = (-0.0030, 0.0)
+    platform_centre_above_tip_mm: float = 20.0
     # --- the handpiece LED the bench's relative distance was measured at: 44 mm behind the
     # file tip along the file.
     led_behind_tip_mm: float = 44.0
@@ -143,7 +158,8 @@ class BenchPhysics:
         return BenchSquarePath(self.platform_knots_mm, self.durations_s, self.pauses_s,
                                self.frame_yaw_deg, start_s=start_s,
                                wander_mm=self.platform_wander_mm,
-                               rng=np.random.default_rng([seed, 0x57A6E]))
+                               rng=np.random.default_rng([seed, 0x57A6E]),
+                               tilt_rad_per_mm=self.platform_tilt_rad_per_mm)
 
     def phantom_pose(self, q0_deg, tool, gap_mm: float) -> np.ndarray:
         """0T_P of the phantom on the platform: the canal's orifice ``gap_mm`` ahead of the
@@ -165,14 +181,19 @@ class BenchPhysics:
                      start_s: float = 0.0, **kw):
         """The bench's :class:`~dentibot.sim.world.WorldConfig` (platform starting its first
         square at ``start_s``; the phantom as :meth:`phantom_pose` places it unless ``kw``
-        gives its pose)."""
+        gives its pose; the platform turning about its centre
+        ``platform_centre_above_tip_mm`` above the file tip at ``q0_deg``)."""
+        from dentibot.control.kinematics import Meca500
         from dentibot.sim.world import WorldConfig
 
+        path = self.platform(start_s, seed)
         cfg = WorldConfig(seed=seed, arm=self.arm(), canal=self.canal(canal),
-                          sensor=self.sensor(), handpiece=self.handpiece(),
-                          motion=self.platform(start_s, seed), **kw)
+                          sensor=self.sensor(), handpiece=self.handpiece(), motion=path, **kw)
         if cfg.phantom_pose is None:
             cfg.phantom_pose = self.phantom_pose(cfg.q0_deg, cfg.tool, cfg.orifice_gap_mm)
+        tip = Meca500(tool=cfg.tool).fk_tool(cfg.q0_deg)[:3, 3]
+        path.centre_mm = (float(tip[0]), float(tip[1]),
+                          float(tip[2]) + self.platform_centre_above_tip_mm)
         return cfg
 
 

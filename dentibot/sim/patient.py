@@ -115,11 +115,18 @@ class BenchSquarePath:
     to each square its own smooth deviation from the loop, piecewise linear through
     ``wander_points`` random offsets around the loop (zero at its start and end, so every
     square still starts and ends at rest), drawn from ``rng``.
+
+    Nor does a real platform only translate: ``tilt_rad_per_mm`` (roll about x_S per mm of
+    x_S travel, pitch about y_S per mm of z_S travel) turns it as it moves, about the centre
+    its position is measured at (``centre_mm``, {0} at rest, set by whoever places the
+    phantom), so that a point below that centre (the canal) moves across the measured path:
+    :meth:`rotation_at`, as a patient's turn, for the world.
     """
 
     def __init__(self, knots_mm, durations_s, pauses_s, frame_yaw_deg: float = 0.0,
                  start_s: float = 0.0, wander_mm=(0.0, 0.0, 0.0), wander_points: int = 12,
-                 rng: np.random.Generator | None = None) -> None:
+                 rng: np.random.Generator | None = None, tilt_rad_per_mm=(0.0, 0.0),
+                 centre_mm=(0.0, 0.0, 0.0)) -> None:
         k = np.asarray(knots_mm, float)
         if k.ndim != 2 or k.shape[1] != 3 or len(k) < 4:
             raise ValueError("knots_mm: n x 3 (x, y, z), n >= 4")
@@ -140,6 +147,12 @@ class BenchSquarePath:
         c, s = math.cos(math.radians(frame_yaw_deg)), math.sin(math.radians(frame_yaw_deg))
         self.ex, self.ey = (s, -c, 0.0), (c, s, 0.0)
         self._k = self.knots.tolist()
+        tilt = tuple(float(x) for x in tilt_rad_per_mm)
+        if len(tilt) != 2 or not all(math.isfinite(x) for x in tilt):
+            raise ValueError(f"tilt_rad_per_mm: (roll per mm of x, pitch per mm of z), "
+                             f"finite, got {tilt_rad_per_mm!r}")
+        self.tilt_rad_per_mm = tilt
+        self.centre_mm = tuple(float(x) for x in centre_mm)
 
     def _draw_wander(self, rms_mm, points: int, rng) -> list | None:
         """Per square, the wander's offsets (mm) at ``points + 1`` phases around the loop
@@ -189,6 +202,29 @@ class BenchSquarePath:
         x, y, z = self.stewart_mm(t)
         ex, ey = self.ex, self.ey
         return (x * ex[0] + y * ey[0], x * ex[1] + y * ey[1], z)
+
+    def rotation_at(self, t: float):
+        """(0R, centre): the platform's turn at ``t`` (small angles: the rotation vector
+        roll x_S + pitch y_S) about its measured centre at rest ({0}, mm)."""
+        kr, kp = self.tilt_rad_per_mm
+        if not (kr or kp):
+            return _IDENTITY, self.centre_mm
+        x, _, z = self.stewart_mm(t)
+        a, b = kr * x, kp * z
+        ex, ey = self.ex, self.ey
+        v = (a * ex[0] + b * ey[0], a * ex[1] + b * ey[1], 0.0)
+        ang = math.hypot(v[0], v[1])
+        if ang == 0.0:
+            return _IDENTITY, self.centre_mm
+        return axis_angle_matrix((v[0] / ang, v[1] / ang, 0.0), ang), self.centre_mm
+
+    def centre_at(self, t: float) -> tuple[float, float, float]:
+        """Where the platform's position is measured ({0}, mm) at ``t``."""
+        o, c = self.offset_mm(t), self.centre_mm
+        return (c[0] + o[0], c[1] + o[1], c[2] + o[2])
+
+
+_IDENTITY = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
 
 # ---------------------------------------------------------------------------- the jaw

@@ -37,8 +37,8 @@ def test_compare_definitions():
 
 
 #: Share of the applicable figures inside the widened real range that the fitted world
-#: reaches today (A 85 %, B 89 %, C 79 %, C_K250 78 %, seed 1): a floor against regressions.
-REACHED = {"A": 0.83, "B": 0.87, "C": 0.77, "C_K250": 0.76}
+#: reaches today (A 91 %, B 91 %, C 88 %, C_K250 79 %, seed 1): a floor against regressions.
+REACHED = {"A": 0.88, "B": 0.89, "C": 0.86, "C_K250": 0.77}
 
 
 @functools.cache
@@ -56,10 +56,14 @@ def test_bench_figures_keep_todays_share_within_the_real_range(config):
     assert share >= REACHED[config], f"{share:.0%} inside; out: {out}"
 
 
+_NOT_YET = pytest.mark.xfail(strict=True, reason="the fitted world is not there yet: C's "
+                             "ripple in squares 2-3 too small, C_K250's too large, no 3 Hz Fz "
+                             "oscillation")
+
+
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="the fitted world is not there yet: y tracking 3x "
-                   "too good, the tilt admittance drifts, no 3 Hz Fz oscillation")
-@pytest.mark.parametrize("config", BENCH_CONFIGS)
+@pytest.mark.parametrize("config", [c if c in ("A", "B") else pytest.param(c, marks=_NOT_YET)
+                                    for c in BENCH_CONFIGS])
 def test_bench_figures_within_real_range(config):
     share, out = _share(config)
     assert share >= 0.9, f"{share:.0%} inside; out: {out}"

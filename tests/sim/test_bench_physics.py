@@ -122,3 +122,54 @@ def test_platform_without_wander_runs_the_loop_every_square():
 def test_platform_wander_rejects_bad_values():
     with pytest.raises(ValueError, match="wander_mm"):
         BenchSquarePath(BENCH.platform_knots_mm, [10.0], [], wander_mm=(0.1, -0.1, 0.0))
+
+
+def _turning_path(roll, pitch=0.0, centre=(10.0, 20.0, 30.0)):
+    return BenchSquarePath(BENCH.platform_knots_mm, [20.0], [], frame_yaw_deg=12.0,
+                           tilt_rad_per_mm=(roll, pitch), centre_mm=centre)
+
+
+def test_a_rolling_platform_carries_a_point_below_its_centre_across_its_travel():
+    """A roll of r rad per mm of x travel turns the platform by a = r x about x_S: a point h
+    below the centre goes from (0, 0, -h) to (0, h sin a, -h cos a) in the Stewart frame
+    (rotation about x), on top of the travel itself."""
+    h, roll = 20.0, -0.003
+    p = _turning_path(roll)
+    t = 4.3                                    # on the bottom leg, x well away from 0
+    x, _, _ = p.stewart_mm(t)
+    assert x < -5.0
+    R, c = p.rotation_at(t)
+    assert c == (10.0, 20.0, 30.0)
+    d = np.array(R) @ np.array([0.0, 0.0, -h])         # the point, from the centre, turned
+    S = np.array([p.ex, p.ey, (0.0, 0.0, 1.0)])
+    a = roll * x
+    assert S @ d == pytest.approx([0.0, h * math.sin(a), -h * math.cos(a)], abs=1e-9)
+    assert np.allclose(np.array(R) @ np.array(R).T, np.eye(3), atol=1e-12)
+    moved = np.add(p.centre_at(t), d)
+    assert moved - np.add(c, (0.0, 0.0, -h)) == pytest.approx(
+        np.add(p.offset_mm(t), S.T @ [0.0, h * math.sin(a), h - h * math.cos(a)]), abs=1e-9)
+
+
+def test_a_platform_at_rest_or_without_tilt_does_not_turn():
+    assert np.array_equal(_turning_path(-0.003).rotation_at(-1.0)[0], np.eye(3))
+    assert np.array_equal(_turning_path(0.0).rotation_at(4.3)[0], np.eye(3))
+    with pytest.raises(ValueError, match="tilt_rad_per_mm"):
+        BenchSquarePath(BENCH.platform_knots_mm, [20.0], [], tilt_rad_per_mm=(math.nan, 0.0))
+
+
+def test_the_bench_world_turns_its_phantom_with_the_platform():
+    """The bench's world: after 3 s of the first square the phantom's orientation is its
+    orientation at rest turned by the preset's roll times the platform's x travel, about
+    x_S."""
+    from dentibot.sim.patient import axis_angle_matrix
+    from dentibot.sim.world import World
+
+    cfg = BENCH.world_config(seed=1, start_s=0.0)
+    w = World(cfg)
+    r0 = w.phantom_rotation.copy()
+    for _ in range(1500):
+        w.step()
+    x, _, _ = w.motion.stewart_mm(w.t)
+    assert x < -1.0
+    turn = np.array(axis_angle_matrix(w.motion.ex, BENCH.platform_tilt_rad_per_mm[0] * x))
+    assert w.phantom_rotation == pytest.approx(turn @ r0, abs=1e-12)
