@@ -3,9 +3,9 @@
 figure, as the Markdown tables of docs/sim-to-real.md.
 
     dentibot experiment alignment --bench --json --seeds N > sim.json
-    .venv/bin/python tools/bench_report.py sim.json [BENCH_DIR]
+    .venv/bin/python tools/bench_report.py sim.json BENCH_DIR
 
-BENCH_DIR (default ../shared/bench relative to the repository) holds exp1_trials.csv. Each
+BENCH_DIR, a copy of the bench recordings' figures, holds exp1_trials.csv. Each
 figure's real range is the min..max over the configuration's recorded trials, widened by 20 %
 of the median (at least 0.3 mm, 0.2 N, 3 ms or 2 mNm):
 dentibot.experiments.alignment.compare_bench.
@@ -54,7 +54,8 @@ def report(sim: dict, rows: list[dict]) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("sim", help="the JSON of dentibot experiment alignment --bench --json")
-    ap.add_argument("bench", nargs="?", default=str(REPO.parent / "shared" / "bench"))
+    ap.add_argument("bench", help="the folder of the bench recordings' figures "
+                    "(exp1_trials.csv, exp1_traj_20hz.csv)")
     a = ap.parse_args(argv)
     sim = json.loads(Path(a.sim).read_text())
     with (Path(a.bench) / "exp1_trials.csv").open() as fh:

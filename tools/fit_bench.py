@@ -2,9 +2,9 @@
 """Re-derive the bench-fitted world's physics (dentibot.sim.bench_physics) from the thesis
 lab's recordings of experiment 1.
 
-    .venv/bin/python tools/fit_bench.py [BENCH_DIR]
+    .venv/bin/python tools/fit_bench.py BENCH_DIR
 
-BENCH_DIR (default ../shared/bench relative to the repository) holds exp1_trials.csv and
+BENCH_DIR, a copy of the bench recordings' figures, holds exp1_trials.csv and
 exp1_traj_20hz.csv. Prints every fitted value with its residual; BenchPhysics holds these
 values (rounded as printed).
 """
@@ -222,7 +222,8 @@ def fit_axial(traj: pd.DataFrame, arm: dict) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("bench", nargs="?", default=str(REPO.parent / "shared" / "bench"))
+    ap.add_argument("bench", help="the folder of the bench recordings' figures "
+                    "(exp1_trials.csv, exp1_traj_20hz.csv)")
     ap.add_argument("--skip-axial", action="store_true", help="skip the slow axial fit")
     a = ap.parse_args(argv)
     trials, traj = load(Path(a.bench))

@@ -208,6 +208,11 @@ async def run_wire_fault(name: str, seed: int = 1, settle_s: float = 0.3,
         raise ValueError(f"unknown wire fault {name!r}; one of {', '.join(WIRE_FAULTS)}")
     if name in HOST_FAULTS:
         return await run_host_fault(name, seed=seed, directory=directory)
+    if name == "can_foreign_master":
+        # python-can's socketcand client imported before the devices start: imported in the
+        # foreign master's connecting thread, it held the interpreter lock past the drive's
+        # 30 ms heartbeat consumer, and the run ended in a lost heartbeat instead
+        import can.interfaces.socketcand  # noqa: F401
     return await _run_runtime_fault(name, seed, settle_s, watch_s)
 
 

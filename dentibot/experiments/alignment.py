@@ -563,8 +563,8 @@ def run_bench(spec: BenchSpec) -> dict:
 
     k, b6, rotate = BENCH_SETUP[spec.config]
     # b4 = b5 = 80 about the tip, as the bench ran: the canal's lateral loads act along the
-    # file (a couple about the tip), which bounds the tilt (1-8 deg over a run; the bench:
-    # 4-8 deg).
+    # file (a couple about the tip), which bounds the tilt (0.6-9 deg from the vertical over
+    # a run; the bench: 4-8 deg).
     r = bench_record(spec.config, k, b6, rotate, seed=spec.seed, settle_s=spec.settle_s,
                      tail_s=spec.tail_s)
     return bench_figures(r.rec, r.starts, r.ends, r.stewart, r.led_behind_tip_mm,
