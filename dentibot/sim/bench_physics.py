@@ -161,17 +161,17 @@ class BenchPhysics:
                                rng=np.random.default_rng([seed, 0x57A6E]),
                                tilt_rad_per_mm=self.platform_tilt_rad_per_mm)
 
-    def phantom_pose(self, q0_deg, tool, gap_mm: float) -> np.ndarray:
+    @staticmethod
+    def phantom_pose(tool_pose: np.ndarray, ex, gap_mm: float) -> np.ndarray:
         """0T_P of the phantom on the platform: the canal's orifice ``gap_mm`` ahead of the
-        file tip at ``q0_deg`` along the file (as :class:`~dentibot.sim.world.World` places
-        it), its x axis turned about the canal to the platform's x (the square's travel), so
-        that the holder's compliances act along the platform's axes."""
-        from dentibot.control.kinematics import Meca500
-
-        t = Meca500(tool=tool).fk_tool(q0_deg)
+        file tip (``tool_pose``, 0T_tool at the start) along the file (as
+        :class:`~dentibot.sim.world.World` places it), its x axis turned about the canal to
+        the platform's x ``ex`` (the square's travel), so that the holder's compliances act
+        along the platform's axes."""
+        t = np.array(tool_pose, float)
         z = t[:3, 2]
         t[:3, 3] += gap_mm * z
-        ex = np.asarray(self.platform().ex, float)
+        ex = np.asarray(ex, float)
         x = ex - np.dot(ex, z) * z
         x /= np.linalg.norm(x)
         t[:3, 0], t[:3, 1] = x, np.cross(z, x)
@@ -189,9 +189,10 @@ class BenchPhysics:
         path = self.platform(start_s, seed)
         cfg = WorldConfig(seed=seed, arm=self.arm(), canal=self.canal(canal),
                           sensor=self.sensor(), handpiece=self.handpiece(), motion=path, **kw)
+        tool_pose = Meca500(tool=cfg.tool).fk_tool(cfg.q0_deg)
         if cfg.phantom_pose is None:
-            cfg.phantom_pose = self.phantom_pose(cfg.q0_deg, cfg.tool, cfg.orifice_gap_mm)
-        tip = Meca500(tool=cfg.tool).fk_tool(cfg.q0_deg)[:3, 3]
+            cfg.phantom_pose = self.phantom_pose(tool_pose, path.ex, cfg.orifice_gap_mm)
+        tip = tool_pose[:3, 3]
         path.centre_mm = (float(tip[0]), float(tip[1]),
                           float(tip[2]) + self.platform_centre_above_tip_mm)
         return cfg

@@ -181,21 +181,11 @@ class BenchSquarePath:
         for j, (t0, d) in enumerate(zip(self.square_starts_s, self.durations_s)):
             if t0 <= t < t0 + d:
                 phase = (t - t0) / d
-                u = phase * self.n
-                i = int(u)
-                f = u - i
-                a, b = self._k[i], self._k[i + 1]
-                p = [a[0] + (b[0] - a[0]) * f, a[1] + (b[1] - a[1]) * f,
-                     a[2] + (b[2] - a[2]) * f]
+                x, y, z = _along(self._k, phase)
                 if self._wander is not None:
-                    w = self._wander[j]
-                    u = phase * (len(w) - 1)
-                    i = int(u)
-                    f = u - i
-                    a, b = w[i], w[i + 1]
-                    for k in range(3):
-                        p[k] += a[k] + (b[k] - a[k]) * f
-                return (p[0], p[1], p[2])
+                    wx, wy, wz = _along(self._wander[j], phase)
+                    return (x + wx, y + wy, z + wz)
+                return (x, y, z)
         return tuple(self._k[0])
 
     def offset_mm(self, t: float) -> tuple[float, float, float]:
@@ -225,6 +215,16 @@ class BenchSquarePath:
 
 
 _IDENTITY = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+
+def _along(points, phase: float) -> tuple[float, float, float]:
+    """The point at ``phase`` in [0, 1) of the piecewise-linear curve through ``points``
+    (n + 1 of them, equally spaced in phase, the last one the curve's end)."""
+    u = phase * (len(points) - 1)
+    i = int(u)
+    f = u - i
+    a, b = points[i], points[i + 1]
+    return (a[0] + (b[0] - a[0]) * f, a[1] + (b[1] - a[1]) * f, a[2] + (b[2] - a[2]) * f)
 
 
 # ---------------------------------------------------------------------------- the jaw
