@@ -39,8 +39,8 @@ def report(sim: dict, rows: list[dict]) -> str:
         real = [r for r in rows if r["group"] == BENCH_GROUPS[cfg]]
         cmp = compare_bench(sim["configs"][cfg]["bench_figures"], real)
         n_in = sum(c["inside"] for c in cmp)
-        out += [f"### {cfg}: {n_in} of {len(cmp)} figures inside "
-                f"({round(100 * n_in / len(cmp))}%)", "",
+        out += [(f"### {cfg}: {n_in} of {len(cmp)} figures inside "
+                 f"({round(100 * n_in / len(cmp))}%)"), "",
                 "| figure | real min..max | widened by | simulated | inside |",
                 "|---|---|---|---|---|"]
         for c in cmp:
