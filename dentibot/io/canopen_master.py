@@ -4,11 +4,12 @@
 bus (kernel SocketCAN, python-can's ``virtual`` bus, any python-can interface, a bus
 factory, or a socketcand server through :class:`SocketcandBus`), in a thread and bounded by
 ``connect_timeout_s`` (a silent peer is a :class:`~dentibot.io.interfaces.ConnectTimeout`);
-reception by COB-ID through python-can's Notifier handed to the event loop; expedited SDO
-transfers, one outstanding at a time, each bounded by ``sdo_timeout_s`` (an abort is a
-:class:`SdoAbort` with its CiA 301 abort code); NMT commands; the heartbeat consumer's
-parameters (CiA 301: a node silent for longer than ``heartbeat_timeout_s`` is lost); the
-master's cyclic task (SYNC producer); teardown.
+reception by COB-ID (frames handed to the event loop in batches by
+:class:`~dentibot.io.can_reader.LoopReader`); expedited SDO transfers, one outstanding at a
+time, each bounded by ``sdo_timeout_s`` (an abort is a :class:`SdoAbort` with its CiA 301
+abort code); NMT commands; the heartbeat consumer's parameters (CiA 301: a node silent for
+longer than ``heartbeat_timeout_s`` is lost); the master's cyclic task (SYNC producer);
+teardown.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import structlog
 
 from dentibot.errors import DeviceFault, ProtocolError
 from dentibot.io import canopen_protocol as co
+from dentibot.io.can_reader import LoopReader
 from dentibot.io.canopen_protocol import NmtCommand, OdObject, SdoFrame
 from dentibot.io.interfaces import ConnectTimeout
 
@@ -34,8 +36,8 @@ log = structlog.get_logger(__name__)
 
 #: Bad frames and failed sends logged one by one before logging only every ``_LOG_EVERY``-th.
 _LOG_FIRST, _LOG_EVERY = 10, 1000
-#: Notifier receive timeout (s): how long ``close()`` may wait for the reader thread.
-_NOTIFIER_TIMEOUT_S = 0.05
+#: Reader receive timeout (s): how long ``close()`` may wait for the reader thread.
+_READER_TIMEOUT_S = 0.05
 
 #: socketcand's default TCP port.
 SOCKETCAND_PORT = 29536
@@ -74,7 +76,7 @@ class SocketcandBus(can.BusABC):
     - bounds every send by ``send_timeout_s`` (a peer that stops reading makes ``send`` raise
       :class:`can.CanOperationError` instead of blocking the event loop);
     - reports a closed connection as :class:`can.CanOperationError` from ``recv`` (the
-      Notifier hands it to the driver as a link error).
+      reader hands it to the driver as a link error).
     """
 
     def __init__(self, channel: str, host: str = "127.0.0.1", port: int = SOCKETCAND_PORT, *,
@@ -283,19 +285,6 @@ async def cancel_task(task: asyncio.Task | None) -> None:
             pass
 
 
-class _Listener(can.Listener):
-    """python-can listener handing frames (and reader-thread errors) to the master."""
-
-    def __init__(self, master: CanOpenMaster) -> None:
-        self.master = master
-
-    def on_message_received(self, msg: can.Message) -> None:
-        self.master._on_message(msg)
-
-    def on_error(self, exc: Exception) -> None:
-        self.master._on_link_error(exc)
-
-
 #: A frame handler: (payload, time of reception on the monotonic clock).
 Handler = Callable[[bytes, float], None]
 
@@ -357,7 +346,7 @@ class CanOpenMaster:
         self.overruns = 0           # own cycles skipped because the loop was late
         self._link_error: str | None = None
         self._bus: can.BusABC | None = None
-        self._notifier: can.Notifier | None = None
+        self._reader: LoopReader | None = None
         self._sdo_lock: asyncio.Lock | None = None
         #: the outstanding SDO request: (node id, index, sub, future of the answer)
         self._sdo_pending: tuple[int, int, int, asyncio.Future] | None = None
@@ -414,17 +403,18 @@ class CanOpenMaster:
         except (can.CanError, OSError, ValueError, TypeError, ImportError) as exc:
             raise DeviceFault(self.name, f"cannot open CAN bus {self._bus_description()}: "
                                          f"{exc}") from exc
-        self._notifier = can.Notifier(self._bus, [_Listener(self)],
-                                      timeout=_NOTIFIER_TIMEOUT_S, loop=loop)
+        self._reader = LoopReader(self._bus, self._on_message, on_error=self._on_link_error,
+                                  timeout=_READER_TIMEOUT_S, loop=loop,
+                                  name=f"{self.name} can reader")
         self._connected = True
 
     def _teardown(self) -> None:
         """Stop the reader, shut the bus down, cancel an outstanding SDO request."""
         self._started = False
         self._connected = False
-        if self._notifier is not None:
-            self._notifier.stop(timeout=1.0)
-            self._notifier = None
+        if self._reader is not None:
+            self._reader.stop(timeout=1.0)
+            self._reader = None
         if self._bus is not None:
             bus, self._bus = self._bus, None
             try:

@@ -7,8 +7,8 @@ come from the project's tables (:mod:`dentibot.io.canopen_protocol`,
 :mod:`dentibot.io.cia406`). Aborts (CiA 301 codes): write-only on upload 0x06010001, not
 writable 0x06010002, length 0x06070010, segmented or unknown requests 0x05040001; the node
 adds its own through :class:`SdoServerAbort`. :class:`BusAttached` attaches a frame
-callback to the simulator's bus (python-can Notifier in this event loop; the bus stays the
-caller's).
+callback to the simulator's bus (:class:`~dentibot.io.can_reader.LoopReader`, frames handed
+to this event loop in batches; the bus stays the caller's).
 """
 
 from __future__ import annotations
@@ -21,12 +21,13 @@ import can
 import structlog
 
 from dentibot.io import canopen_protocol as co
+from dentibot.io.can_reader import LoopReader
 from dentibot.io.canopen_protocol import NmtCommand, NmtState, OdObject, SdoFrame
 
 log = structlog.get_logger(__name__)
 
-#: Notifier receive timeout (s): how long ``close()`` may wait for the reader thread.
-_NOTIFIER_TIMEOUT_S = 0.05
+#: Reader receive timeout (s): how long ``close()`` may wait for the reader thread.
+_READER_TIMEOUT_S = 0.05
 
 
 class SdoServerAbort(Exception):
@@ -43,7 +44,7 @@ class BusAttached:
 
     bus: can.BusABC
     send_errors: int
-    _notifier: can.Notifier | None = None
+    _reader: LoopReader | None = None
 
     def _send_frame(self, can_id: int, data: bytes, failed: str, **fields: object) -> None:
         """Send a standard data frame; a failure is counted in ``send_errors`` and logged
@@ -56,14 +57,14 @@ class BusAttached:
 
     def _attach(self, bus: can.BusABC, callback: Callable[[can.Message], None]) -> None:
         """Hand the bus's frames to ``callback`` in the running event loop."""
-        self._notifier = can.Notifier(bus, [callback], timeout=_NOTIFIER_TIMEOUT_S,
-                                      loop=asyncio.get_running_loop())
+        self._reader = LoopReader(bus, callback, timeout=_READER_TIMEOUT_S,
+                                  loop=asyncio.get_running_loop())
 
     def _detach(self) -> None:
         """Stop listening (the bus stays open)."""
-        if self._notifier is not None:
-            self._notifier.stop(timeout=1.0)
-            self._notifier = None
+        if self._reader is not None:
+            self._reader.stop(timeout=1.0)
+            self._reader = None
 
     async def start(self) -> None:
         raise NotImplementedError

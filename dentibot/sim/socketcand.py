@@ -208,7 +208,6 @@ class SocketcandServer(BusAttached):
         self._clients: set[_Client] = set()
         self._tasks: set[asyncio.Task] = set()
         self._server: asyncio.Server | None = None
-        self._notifier: can.Notifier | None = None
         self._closed = False
         self._commands = {
             "open": self._cmd_open,
