@@ -58,6 +58,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dentibot.control.filebeam import WORKING_PART_MM
+from dentibot.sim.canal_walls import wall_loads
 from dentibot.errors import ConfigError
 from dentibot.sim.nitifile import NiTiFile
 
@@ -432,87 +433,20 @@ class Canal:
         turns the handpiece towards the canal's direction under admittance control (thesis
         4.4), and which a single resultant force would lose."""
         p = self.p
-        s = self.s[i0:i1]
-        ez = self._sz[i0:i1] * complex(au, av) + complex(eu - s_tip * au, ev - s_tip * av)
-        en = np.abs(ez)
-        x = g + en                                       # far-side penetration (< 0: a gap)
-        net = np.minimum(x, en + en)                     # far minus near penetration
-        kd = p.wall_n_mm_per_mm * p.slice_mm
-        n = i1 - i0
-        m = n // 2
-        pts = []                                         # (e, pen0, k, lever, gap offset g)
-        for lo, hi, j in ((0, m, 0), (m, n, n - 1)):
-            if hi <= lo:
-                continue
-            k = kd * max(1, int(np.count_nonzero(net[lo:hi] > 0.0)))
-            pts.append((complex(ez[j]), float(net[j]), k, s_tip - float(s[j]), float(g[j])))
-        npt = len(pts)
         sup = p.support_mm_per_n                         # the tooth moves as a body on it
         sup_y = sup if p.support_y_mm_per_n is None else p.support_y_mm_per_n
-        # an anisotropic support: its part beyond the x compliance acts along y only
-        extra_y = sup_y - sup
         beam = f.beam
-        memo: dict = {}
-
-        def comp(i: int, j: int) -> float:                # c(i, j), computed when needed
-            k = (i, j) if i <= j else (j, i)
-            v = memo.get(k)
-            if v is None:
-                v = memo[k] = beam.compliance_mm_n(pts[k[0]][3], pts[k[1]][3]) + sup
-            return v
-
-        def coupling(i: int, j: int) -> float:
-            """Displacement along n_i per unit load along n_j."""
-            c = comp(i, j) * (normals[i] * normals[j].conjugate()).real
-            return c + extra_y * normals[i].imag * normals[j].imag if extra_y else c
-
-        normals = [e / abs(e) if abs(e) > 1e-9 else 0j for e, *_ in pts]
-        active = [pts[i][1] > 0.0 and normals[i] != 0j for i in range(npt)]
-        lam = [0.0] * npt
-        for _ in range(4):
-            idx = [i for i in range(npt) if active[i]]
-            lam = [0.0] * npt
-            if len(idx) == 1:
-                i = idx[0]
-                lam[i] = pts[i][1] / (1.0 / pts[i][2] + coupling(i, i))
-            elif len(idx) == 2:
-                i, j = idx
-                cij = coupling(i, j)
-                a00, a11 = 1.0 / pts[i][2] + coupling(i, i), 1.0 / pts[j][2] + coupling(j, j)
-                det = a00 * a11 - cij * cij
-                lam[i] = (a11 * pts[i][1] - cij * pts[j][1]) / det
-                lam[j] = (a00 * pts[j][1] - cij * pts[i][1]) / det
-            neg = [i for i in idx if lam[i] < 0.0]
-            if neg:                                      # a contact that would pull leaves
-                active[min(neg, key=lambda i: lam[i])] = False
-                continue
-            joined = False
-            for i in range(npt):
-                if active[i]:
-                    continue
-                w = sum((-lam[k] * normals[k] * comp(i, k) for k in idx), 0j)
-                if extra_y:
-                    w += 1j * extra_y * sum(-lam[k] * normals[k].imag for k in idx)
-                e = pts[i][0] + w
-                if abs(e) + pts[i][4] > 0.0 and abs(e) > 1e-9:   # bent into the wall
-                    normals[i] = e / abs(e)
-                    pen = (pts[i][0] * normals[i].conjugate()).real + pts[i][4]
-                    pts[i] = (pts[i][0], pen, *pts[i][2:])
-                    active[i] = True
-                    joined = True
-            if not joined:
-                break
-        fz = sum((-lam[i] * normals[i] for i in range(npt)), 0j)
-        gz = sum((-lam[i] * normals[i] * pts[i][3] for i in range(npt)), 0j)
-        total = sum(lam)
+        step, t0, t1, t2 = beam.integrals
+        # an anisotropic support: its part beyond the x compliance acts along y only
+        total, fu, fv, mu, mv, d = wall_loads(
+            self.s[i0:i1], g, au, av, eu, ev, s_tip, p.wall_n_mm_per_mm * p.slice_mm, sup,
+            sup_y - sup, beam.length_mm, step, t0, t1, t2)
         if total <= 0.0:
             return 0.0
         u, v = self.u, self.v
-        out.f_lat = (fz.real * u[0] + fz.imag * v[0], fz.real * u[1] + fz.imag * v[1],
-                     fz.real * u[2] + fz.imag * v[2])
-        out.m_lat = (gz.real * u[0] + gz.imag * v[0], gz.real * u[1] + gz.imag * v[1],
-                     gz.real * u[2] + gz.imag * v[2])
-        out.contact_from_tip_mm = sum(lam[i] * pts[i][3] for i in range(npt)) / total
+        out.f_lat = (fu * u[0] + fv * v[0], fu * u[1] + fv * v[1], fu * u[2] + fv * v[2])
+        out.m_lat = (mu * u[0] + mv * v[0], mu * u[1] + mv * v[1], mu * u[2] + mv * v[2])
+        out.contact_from_tip_mm = d
         return total
 
     def _drag_forces(self, out: Interaction, eu: float, ev: float, dt: float) -> float:
