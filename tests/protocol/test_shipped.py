@@ -1,32 +1,58 @@
 """Every shipped protocol runs to a good end on the built-in simulator (the main job,
-protocols/root-canal.yaml, runs through the README's command in tests/test_readme.py)."""
+protocols/root-canal.yaml, runs through the README's command in tests/test_readme.py).
+
+The runs are independent and long (phantom D drills 500 simulated seconds): they run in two
+worker processes at once, the longest first, and each test checks its own run's summary."""
 
 from __future__ import annotations
 
+import asyncio
 import logging
+import multiprocessing
+from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 
 import pytest
 import structlog
 
-from dentibot.protocol.loader import load_protocol
 from dentibot.app.runner import ProtocolRunner
+from dentibot.protocol.loader import load_protocol
 
 DIR = Path(__file__).parents[2] / "protocols"
 SHIPPED = sorted(p for p in DIR.glob("*.yaml") if p.name != "root-canal.yaml")
 
 
-@pytest.fixture(autouse=True)
-def _quiet():
+def _planned_s(path: Path) -> float:
+    """The protocol's planned seconds (what orders the runs: the longest first)."""
+    steps = load_protocol(path).steps
+    total = 0.0
+    for st in steps:
+        total += getattr(st.spec, "duration_s", 0.0) or 0.0
+        total += sum(getattr(r, "duration_s", 0.0) for r in getattr(st.spec, "rounds", ()) or ())
+    return total
+
+
+def _run(path: str):
+    """One shipped protocol, run as ``dentibot run --no-record`` runs it (in a worker)."""
     structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
+    return asyncio.run(ProtocolRunner(load_protocol(Path(path)), no_record=True).run()).summary
+
+
+@pytest.fixture(scope="module")
+def shipped_runs():
+    pool = ProcessPoolExecutor(max_workers=2, mp_context=multiprocessing.get_context("spawn"))
+    futures: dict[str, Future] = {}
+    for path in sorted(SHIPPED, key=_planned_s, reverse=True):
+        futures[path.stem] = pool.submit(_run, str(path))
+    yield futures
+    pool.shutdown(cancel_futures=True)
 
 
 @pytest.mark.timeout(300)
 @pytest.mark.parametrize("path", SHIPPED, ids=[p.stem for p in SHIPPED])
-async def test_shipped_protocol_succeeds(path):
+def test_shipped_protocol_succeeds(path, shipped_runs):
     protocol = load_protocol(path)
-    res = await ProtocolRunner(protocol, no_record=True).run()
-    s = res.summary
+    s = shipped_runs[path.stem].result(timeout=280)
     assert s.status == "ok", s.reason
     assert s.fractures == 0
     assert s.duration_s >= sum(getattr(st.spec, "duration_s", 0.0) for st in protocol.steps)
