@@ -4,7 +4,8 @@ Reads the recordings' per-trial figures from ../shared/bench (relative to the re
 skips when they are absent."""
 
 import csv
-import functools
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -41,18 +42,32 @@ def test_compare_definitions():
 REACHED = {"A": 0.88, "B": 0.89, "C": 0.86, "C_K250": 0.77}
 
 
-@functools.cache
-def _share(config):
-    rows = _rows(config)
-    cmp = compare_bench(run_bench(BenchSpec(config)), rows)
-    inside = sum(c["inside"] for c in cmp)
-    return inside / len(cmp), [c["figure"] for c in cmp if not c["inside"]]
+@pytest.fixture(scope="module")
+def bench_runs():
+    """The four configurations' bench runs, two at a time in worker processes (each run is
+    independent and as long as the others)."""
+    if not TRIALS.exists():
+        pytest.skip("bench recordings absent")
+    pool = ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn"))
+    yield {c: pool.submit(run_bench, BenchSpec(c)) for c in BENCH_CONFIGS}
+    pool.shutdown(cancel_futures=True)
+
+
+_SHARES: dict = {}
+
+
+def _share(config, runs):
+    if config not in _SHARES:
+        cmp = compare_bench(runs[config].result(timeout=600), _rows(config))
+        inside = sum(c["inside"] for c in cmp)
+        _SHARES[config] = inside / len(cmp), [c["figure"] for c in cmp if not c["inside"]]
+    return _SHARES[config]
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("config", BENCH_CONFIGS)
-def test_bench_figures_keep_todays_share_within_the_real_range(config):
-    share, out = _share(config)
+def test_bench_figures_keep_todays_share_within_the_real_range(config, bench_runs):
+    share, out = _share(config, bench_runs)
     assert share >= REACHED[config], f"{share:.0%} inside; out: {out}"
 
 
@@ -64,6 +79,6 @@ _NOT_YET = pytest.mark.xfail(strict=True, reason="the fitted world is not there 
 @pytest.mark.slow
 @pytest.mark.parametrize("config", [c if c in ("A", "B") else pytest.param(c, marks=_NOT_YET)
                                     for c in BENCH_CONFIGS])
-def test_bench_figures_within_real_range(config):
-    share, out = _share(config)
+def test_bench_figures_within_real_range(config, bench_runs):
+    share, out = _share(config, bench_runs)
     assert share >= 0.9, f"{share:.0%} inside; out: {out}"
