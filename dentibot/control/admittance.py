@@ -26,8 +26,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dentibot.control.kinematics import Meca500, damped_least_squares
-from dentibot.control.limits import JointLimiter, LimitReport
+from dentibot.control.joint_rate_kernels import joint_step
+from dentibot.control.kinematics import WRIST_CENTRE_FRAME, Meca500, SingularityMeasure
+from dentibot.control.limits import JointLimiter, LimitReport, guarded_joints
 from dentibot.errors import ConfigError
 
 INF = math.inf
@@ -222,15 +223,14 @@ class AdmittanceController:
         twist = self._filter.step(wrench)
         if feedforward is not None:
             twist = twist + feedforward
-        robot = self.robot
+        robot, lim = self.robot, self.limiter
         jh, frames = kin if kin is not None else self.kinematics(q_deg)
-        if robot.singularity(q_deg, frames=frames).value > 0.2:
-            qdot = np.linalg.solve(jh, twist)
-        else:
-            qdot = damped_least_squares(jh, twist, self.singular_sigma)
-        sing = robot.singularity(q_deg, qdot, frames=frames)
-        qdot, report = self.limiter.apply(q_deg, qdot, sing)
-        q_next = np.asarray(q_deg, dtype=float) + (self._half_ts_deg * (qdot + self._w_prev))
-        np.clip(q_next, self._q_lo, self._q_hi, out=q_next)
+        q_next, qdot, sing, s_scale, speed_scale, guarded = joint_step(
+            jh, twist, frames, np.asarray(q_deg, dtype=float), self._w_prev, self._half_ts_deg,
+            self._q_lo, self._q_hi, self.singular_sigma, robot.elbow_offset_rad,
+            WRIST_CENTRE_FRAME, lim.thresholds, lim.lo_rad, lim.hi_rad, lim.vmax_rad_s,
+            lim.margin_rad, lim.ts)
         self._w_prev = qdot
+        report = LimitReport(s_scale, speed_scale, guarded_joints(guarded),
+                             SingularityMeasure(*sing))
         return JointCommand(q_next, np.degrees(qdot), twist, report)

@@ -97,3 +97,18 @@ def beam_compliance(length_mm: float, step: float, i0: np.ndarray, i1: np.ndarra
     a1 = i1[j] + (i1[j + 1] - i1[j]) * w
     a2 = i2[j] + (i2[j + 1] - i2[j]) * w
     return max(x1 * x2 * a0 - (x1 + x2) * a1 + a2, 1e-9)
+
+
+_warm = False
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) :func:`beam_compliance` once per process (a control
+    loop must not pay a compilation at its first tick)."""
+    global _warm
+    if not _warm:
+        FileBeam().compliance_mm_n(1.0, 2.0)
+        _warm = True
+
+
+warm_up()      # at import: before any device streams or loop runs

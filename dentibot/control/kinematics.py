@@ -6,9 +6,10 @@ each row is (alpha_{i-1} deg, a_{i-1} mm, theta offset deg, d_i mm) and the link
 OCR-garbled; everything here is computed from the table.
 
 Speed matters: the forward chain and the Jacobian run every 2 ms tick. Instead of building six
-4x4 matrices with numpy (about 110 us a call), the chain is propagated with Python floats,
-column by column, exploiting that ``Rx(alpha) Rz(theta)`` has a fixed structure; one numpy
-array is built at the end. See ``benchmarks/``.
+4x4 matrices with numpy (about 110 us a call), the chain is propagated column by column,
+exploiting that ``Rx(alpha) Rz(theta)`` has a fixed structure, in compiled kernels
+(:mod:`dentibot.control.kinematics_kernels`); a chain is an array of shape (6, 4, 3), each
+frame's rotation columns and origin. See ``benchmarks/``.
 
 Units: lengths mm, public angles deg. Jacobians map joint rates in rad/s to
 [linear mm/s; angular rad/s].
@@ -23,6 +24,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from dentibot.control.joint_rate_kernels import damped_least_squares  # noqa: F401 - API
+from dentibot.control.kinematics_kernels import (
+    dh_frames,
+    point_jacobian,
+    singularity_factors,
+    tool_point_axes,
+)
 from dentibot.errors import KinematicsError
 
 # Table 3.1: (alpha_{i-1} deg, a_{i-1} mm, theta offset deg, d_i mm), modified DH.
@@ -107,13 +115,14 @@ class Meca500:
             )
             for alpha, a, offset, d in dh
         )
+        self._dh_arr = np.array(self._dh, dtype=float)
         self.joint_limits_deg = np.array(joint_limits_deg, dtype=float)
         self.joint_speed_limits_deg_s = np.array(joint_speed_limits_deg_s, dtype=float)
         self.joint_speed_limits_rad_s = np.radians(self.joint_speed_limits_deg_s)
         # Lengths used by the closed-form singularity measure (upper arm, forearm to wrist).
         self._a2 = float(dh[2][1])
         self._l3 = math.hypot(dh[3][1], dh[3][3])
-        self._elbow_offset = math.atan2(dh[3][1], dh[3][3])
+        self.elbow_offset_rad = math.atan2(dh[3][1], dh[3][3])
         self.set_tool(np.eye(4) if tool is None else tool)
 
     # ------------------------------------------------------------------ tool frame
@@ -122,55 +131,25 @@ class Meca500:
         tool = np.asarray(tool, dtype=float)
         if tool.shape != (4, 4):
             raise KinematicsError(f"tool transform must be 4x4, got shape {tool.shape}")
-        self.tool = tool.copy()
-        self._tool_p = tuple(float(x) for x in tool[:3, 3])
-        self._tool_cols = tuple(tuple(float(x) for x in tool[:3, k]) for k in range(3))
+        self.tool = np.ascontiguousarray(tool, dtype=float).copy()
 
     # ------------------------------------------------------------------ chain
-    def _chain(self, q_deg, all_frames: bool = True):
-        """Rotation columns and origin of frames {1}..{6} in {0}, as Python floats.
-
-        Each link is ``R <- R Rx(alpha) Rz(theta)``, ``p <- p + a x + d z'``, unrolled on
-        scalars (numpy's per-call overhead dominates for 3x3 matrices). With ``all_frames``
-        false only the flange ``(cols, p)`` is returned (the simulator's per-step call).
-        """
-        x0, x1, x2 = 1.0, 0.0, 0.0
-        y0, y1, y2 = 0.0, 1.0, 0.0
-        z0, z1, z2 = 0.0, 0.0, 1.0
-        p0 = p1 = p2 = 0.0
-        cos, sin, rad = math.cos, math.sin, math.pi / 180.0
-        frames = []
-        for (ca, sa, a, off, d), qi in zip(self._dh, q_deg):
-            # R Rx(alpha): y' = ca y + sa z, z' = -sa y + ca z
-            u0, u1, u2 = ca * y0 + sa * z0, ca * y1 + sa * z1, ca * y2 + sa * z2
-            z0, z1, z2 = -sa * y0 + ca * z0, -sa * y1 + ca * z1, -sa * y2 + ca * z2
-            p0 += a * x0 + d * z0
-            p1 += a * x1 + d * z1
-            p2 += a * x2 + d * z2
-            th = qi * rad + off
-            ct, st = cos(th), sin(th)
-            # Rz(theta): x'' = ct x + st y', y'' = -st x + ct y'
-            x0, x1, x2, y0, y1, y2 = (ct * x0 + st * u0, ct * x1 + st * u1, ct * x2 + st * u2,
-                                      -st * x0 + ct * u0, -st * x1 + ct * u1, -st * x2 + ct * u2)
-            if all_frames:
-                frames.append((((x0, x1, x2), (y0, y1, y2), (z0, z1, z2)), (p0, p1, p2)))
-        if all_frames:
-            return frames
-        return ((x0, x1, x2), (y0, y1, y2), (z0, z1, z2)), (p0, p1, p2)
+    def _chain(self, q_deg) -> np.ndarray:
+        """Frames {1}..{6} in {0}, shape (6, 4, 3): rotation columns and origin
+        (:func:`~dentibot.control.kinematics_kernels.dh_frames`)."""
+        return dh_frames(self._dh_arr, np.asarray(q_deg, dtype=float))
 
     def flange_floats(self, q_deg):
-        """Flange rotation 0R_6 as three row tuples and position (mm), in Python floats.
-
-        The cheapest forward kinematics (no numpy): for callers that need it every step.
-        """
-        (c0, c1, c2), p = self._chain(q_deg, all_frames=False)
-        return ((c0[0], c1[0], c2[0]), (c0[1], c1[1], c2[1]), (c0[2], c1[2], c2[2])), p
+        """Flange rotation 0R_6 as three row tuples and position (mm), in Python floats: for
+        callers that work on floats every step (the simulated arm)."""
+        (c0, c1, c2, p) = self._chain(q_deg)[5].tolist()
+        return ((c0[0], c1[0], c2[0]), (c0[1], c1[1], c2[1]), (c0[2], c1[2], c2[2])), tuple(p)
 
     def tool_tip_axis(self, frames) -> tuple[tuple, tuple]:
         """File tip 0p_H (mm) and file axis (the z axis of {H}) in {0}, from ``frames`` as
         returned by ``tool_jacobian(..., with_frames=True)`` (no second forward pass)."""
-        cols, o6 = frames[-1]
-        return _add(o6, _mul_cols(cols, self._tool_p)), _mul_cols(cols, self._tool_cols[2])
+        pa = tool_point_axes(frames, self.tool, _ZERO3)
+        return tuple(pa[3].tolist()), tuple(pa[2].tolist())
 
     def _check_q(self, q_deg) -> None:
         if len(q_deg) != 6:
@@ -179,8 +158,7 @@ class Meca500:
     def fk(self, q_deg) -> np.ndarray:
         """Flange pose 0T_6 (4x4, mm) for joint angles in deg (eq 3.1)."""
         self._check_q(q_deg)
-        cols, p = self._chain(q_deg)[-1]
-        return _matrix(cols, p)
+        return frame_matrix(self._chain(q_deg)[5])
 
     def fk_tool(self, q_deg) -> np.ndarray:
         """Tool pose 0T_H = 0T_6 6T_H (eq 3.19)."""
@@ -189,35 +167,9 @@ class Meca500:
     def frames(self, q_deg) -> list[np.ndarray]:
         """0T_i for i = 1..6 (useful for drawing and for tests)."""
         self._check_q(q_deg)
-        return [_matrix(c, p) for c, p in self._chain(q_deg)]
+        return [frame_matrix(f) for f in self._chain(q_deg)]
 
     # ------------------------------------------------------------------ Jacobians
-    def _jacobian_at(self, frames, point, axes=None) -> np.ndarray:
-        """Geometric Jacobian for the velocity of ``point`` (in {0}) (eq 3.5-3.7).
-
-        With ``axes`` (the three column vectors of a frame's rotation in {0}) the rows are
-        expressed in that frame instead of {0} (eq 3.10-3.14).
-        """
-        px, py, pz = point
-        cols_out = []
-        for cols, o in frames:
-            zx, zy, zz = cols[2]
-            dx, dy, dz = px - o[0], py - o[1], pz - o[2]
-            lx, ly, lz = zy * dz - zz * dy, zz * dx - zx * dz, zx * dy - zy * dx
-            if axes is None:
-                cols_out.append((lx, ly, lz, zx, zy, zz))
-            else:
-                h0, h1, h2 = axes
-                cols_out.append((
-                    h0[0] * lx + h0[1] * ly + h0[2] * lz,
-                    h1[0] * lx + h1[1] * ly + h1[2] * lz,
-                    h2[0] * lx + h2[1] * ly + h2[2] * lz,
-                    h0[0] * zx + h0[1] * zy + h0[2] * zz,
-                    h1[0] * zx + h1[1] * zy + h1[2] * zz,
-                    h2[0] * zx + h2[1] * zy + h2[2] * zz,
-                ))
-        return np.array(cols_out).T
-
     def jacobian(self, q_deg) -> np.ndarray:
         """Geometric Jacobian 0J_g of the flange origin, in {0} (eq 3.6).
 
@@ -225,7 +177,7 @@ class Meca500:
         """
         self._check_q(q_deg)
         frames = self._chain(q_deg)
-        return self._jacobian_at(frames, frames[-1][1])
+        return point_jacobian(frames, frames[5, 3], _EYE3, False)
 
     def tool_jacobian(self, q_deg, ref_point_h_mm=None, with_frames: bool = False):
         """Geometric Jacobian in {H} (eq 3.14), for a reference point fixed in {H}.
@@ -239,14 +191,9 @@ class Meca500:
         """
         self._check_q(q_deg)
         frames = self._chain(q_deg)
-        cols, o6 = frames[-1]
-        if ref_point_h_mm is None:
-            p_h = self._tool_p
-        else:
-            p_h = _add(self._tool_p, _mul_cols(self._tool_cols, ref_point_h_mm))
-        point = _add(o6, _mul_cols(cols, p_h))
-        axes = tuple(_mul_cols(cols, tc) for tc in self._tool_cols)
-        j = self._jacobian_at(frames, point, axes)
+        ref = _ZERO3 if ref_point_h_mm is None else np.asarray(ref_point_h_mm, dtype=float)
+        pa = tool_point_axes(frames, self.tool, ref)
+        j = point_jacobian(frames, pa[3], pa[:3], True)
         return (j, frames) if with_frames else j
 
     def analytical_jacobian(self, q_deg) -> np.ndarray:
@@ -281,27 +228,14 @@ class Meca500:
         if frames is None:
             self._check_q(q_deg)
             frames = self._chain(q_deg)
-        wc = frames[WRIST_CENTRE_FRAME][1]
-        rho = math.hypot(wc[0], wc[1])
-        elbow_angle = math.radians(q_deg[2]) - self._elbow_offset
-        elbow = abs(math.cos(elbow_angle))
-        q5 = math.radians(q_deg[4])
-        wrist = abs(math.sin(q5))
+        q = np.asarray(q_deg, dtype=float)
         if qdot_rad_s is None:
-            return SingularityMeasure(rho, elbow, wrist)
-        # Wrist-centre velocity: only joints 1-3 move it.
-        v = [0.0, 0.0]
-        for (cols, o), qd in zip(frames[:3], qdot_rad_s[:3]):
-            zx, zy, zz = cols[2]
-            v[0] += (zy * (wc[2] - o[2]) - zz * (wc[1] - o[1])) * qd
-            v[1] += (zz * (wc[0] - o[0]) - zx * (wc[2] - o[2])) * qd
-        if rho > 1e-9:
-            rho_rate = (wc[0] * v[0] + wc[1] * v[1]) / rho
-        else:
-            rho_rate = -math.hypot(v[0], v[1])
-        elbow_rate = -math.copysign(1.0, math.cos(elbow_angle)) * math.sin(elbow_angle) * float(qdot_rad_s[2])
-        wrist_rate = math.copysign(1.0, math.sin(q5)) * math.cos(q5) * float(qdot_rad_s[4])
-        return SingularityMeasure(rho, elbow, wrist, rho_rate, elbow_rate, wrist_rate)
+            r = singularity_factors(frames, q, _ZERO6, False, self.elbow_offset_rad,
+                                    WRIST_CENTRE_FRAME)
+            return SingularityMeasure(r[0], r[1], r[2])
+        r = singularity_factors(frames, q, np.asarray(qdot_rad_s, dtype=float), True,
+                                self.elbow_offset_rad, WRIST_CENTRE_FRAME)
+        return SingularityMeasure(*r)
 
     def within_limits(self, q_deg) -> bool:
         q = np.asarray(q_deg, dtype=float)
@@ -309,29 +243,16 @@ class Meca500:
 
 
 # ---------------------------------------------------------------------- helpers
-def _mul_cols(cols, v) -> tuple[float, float, float]:
-    """R @ v for R given by its columns, in Python floats."""
-    c0, c1, c2 = cols
-    a, b, c = v
-    return (
-        c0[0] * a + c1[0] * b + c2[0] * c,
-        c0[1] * a + c1[1] * b + c2[1] * c,
-        c0[2] * a + c1[2] * b + c2[2] * c,
-    )
+_ZERO3 = np.zeros(3)
+_ZERO6 = np.zeros(6)
+_EYE3 = np.eye(3)
 
 
-def _add(u, v) -> tuple[float, float, float]:
-    return (u[0] + v[0], u[1] + v[1], u[2] + v[2])
-
-
-def _rot(cols) -> np.ndarray:
-    return np.array(cols).T
-
-
-def _matrix(cols, p) -> np.ndarray:
+def frame_matrix(frame: np.ndarray) -> np.ndarray:
+    """The 4x4 transform of one frame of a chain (rotation columns and origin, (4, 3))."""
     t = np.eye(4)
-    t[:3, :3] = _rot(cols)
-    t[:3, 3] = p
+    t[:3, :3] = frame[:3].T
+    t[:3, 3] = frame[3]
     return t
 
 
@@ -382,20 +303,3 @@ def euler_xyz_deg(R) -> tuple[float, float, float]:
     else:
         a, g = math.atan2(R[2][1], R[1][1]), 0.0
     return math.degrees(a), math.degrees(b), math.degrees(g)
-
-
-def damped_least_squares(j: np.ndarray, v: np.ndarray, sigma_min_ok: float = 0.05,
-                         lambda_max: float = 0.05) -> np.ndarray:
-    """Solve ``J qdot = v`` with damping that grows smoothly near a singularity.
-
-    Far from singularities (smallest singular value >= ``sigma_min_ok``) this is the exact
-    solution. Closer, ``lambda^2 = (1 - (s/sigma_min_ok)^2) lambda_max^2`` (Nakamura, Chiaverini)
-    trades tracking accuracy for bounded joint rates: the result never blows up.
-    """
-    u, s, vt = np.linalg.svd(j)
-    smin = s[-1]
-    if smin >= sigma_min_ok:
-        lam2 = 0.0
-    else:
-        lam2 = (1.0 - (smin / sigma_min_ok) ** 2) * lambda_max**2
-    return vt.T @ ((s / (s * s + lam2)) * (u.T @ v))

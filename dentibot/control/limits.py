@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dentibot.control.joint_rate_kernels import limit_rates
+from dentibot.control.joint_rate_kernels import singularity_scale as _singularity_scale
 from dentibot.control.kinematics import Meca500, SingularityMeasure
 from dentibot.errors import ConfigError
 
@@ -56,14 +58,6 @@ class LimitReport:
         return self.singularity_scale < 1.0 or self.speed_scale < 1.0 or bool(self.guarded_joints)
 
 
-def _ramp(value: float, stop: float, start: float) -> float:
-    if value >= start:
-        return 1.0
-    if value <= stop:
-        return 0.0
-    return (value - stop) / (start - stop)
-
-
 @dataclass
 class JointLimiter:
     """Scales and clamps joint rates so the arm never leaves its envelope.
@@ -89,56 +83,37 @@ class JointLimiter:
             raise ConfigError("limits.speed_fraction", self.speed_fraction, "0 < value <= 1")
         if self.range_margin_deg <= 0.0:
             raise ConfigError("limits.range_margin_deg", self.range_margin_deg, "> 0 deg")
-        self._lo = np.radians(self.robot.joint_limits_deg[:, 0])
-        self._hi = np.radians(self.robot.joint_limits_deg[:, 1])
-        self._vmax = self.robot.joint_speed_limits_rad_s * self.speed_fraction
-        self._margin = math.radians(self.range_margin_deg)
-        self._lo_f = tuple(float(x) for x in self._lo)
-        self._hi_f = tuple(float(x) for x in self._hi)
-        self._vmax_f = tuple(float(x) for x in self._vmax)
+        self.lo_rad = np.radians(self.robot.joint_limits_deg[:, 0])
+        self.hi_rad = np.radians(self.robot.joint_limits_deg[:, 1])
+        self.vmax_rad_s = self.robot.joint_speed_limits_rad_s * self.speed_fraction
+        self.margin_rad = math.radians(self.range_margin_deg)
+        th = self.singularity
+        #: the singularity thresholds as the kernels take them
+        #: (:mod:`dentibot.control.joint_rate_kernels`)
+        self.thresholds = np.array([th.shoulder_stop_mm, th.shoulder_start_mm, th.elbow_stop,
+                                    th.elbow_start, th.wrist_stop, th.wrist_start])
 
     def singularity_scale(self, s: SingularityMeasure) -> float:
-        th = self.singularity
-        scale = 1.0
-        if s.shoulder_rate < 0.0:
-            scale = min(scale, _ramp(s.shoulder_mm, th.shoulder_stop_mm, th.shoulder_start_mm))
-        if s.elbow_rate < 0.0:
-            scale = min(scale, _ramp(s.elbow, th.elbow_stop, th.elbow_start))
-        if s.wrist_rate < 0.0:
-            scale = min(scale, _ramp(s.wrist, th.wrist_stop, th.wrist_start))
-        return scale
+        return _singularity_scale(_factors(s), self.thresholds)
 
     def apply(self, q_deg, qdot_rad_s: np.ndarray,
               sing: SingularityMeasure | None = None) -> tuple[np.ndarray, LimitReport]:
-        """Limited joint rates (rad/s) for the configuration ``q_deg``."""
+        """Limited joint rates (rad/s) for the configuration ``q_deg``
+        (:func:`~dentibot.control.joint_rate_kernels.limit_rates`)."""
         if sing is None:
             sing = self.robot.singularity(q_deg, qdot_rad_s)
-        s_scale = self.singularity_scale(sing)
-        qdot = qdot_rad_s * s_scale if s_scale < 1.0 else qdot_rad_s
-        # Joint range: distance left in the direction of motion. Plain floats: six joints do
-        # not pay numpy's per-call overhead (this runs every tick).
-        out = [0.0] * 6
-        guarded = []
-        ratio = 0.0
-        qd = qdot.tolist() if type(qdot) is np.ndarray else [float(x) for x in qdot]
-        for i in range(6):
-            w = qd[i]
-            qi = math.radians(q_deg[i])
-            dist = max(self._hi_f[i] - qi if w > 0.0 else qi - self._lo_f[i], 0.0)
-            vmax = self._vmax_f[i]
-            if dist < self._margin:
-                allowed = min(vmax * dist / self._margin, dist / self.ts)
-                if abs(w) > allowed:
-                    w = math.copysign(allowed, w)
-                    guarded.append(i)
-            out[i] = w
-            ratio = max(ratio, abs(w) / vmax)
-        # Joint speed: uniform scaling keeps the direction of the tool motion.
-        speed_scale = 1.0
-        if ratio > 1.0:
-            speed_scale = 1.0 / ratio
-        qdot = np.array(out)
-        if speed_scale < 1.0:
-            qdot *= speed_scale
-        guarded = tuple(guarded)
-        return qdot, LimitReport(s_scale, speed_scale, guarded, sing)
+        qdot, s_scale, speed_scale, guarded = limit_rates(
+            np.asarray(q_deg, dtype=float), np.asarray(qdot_rad_s, dtype=float),
+            _factors(sing), self.thresholds, self.lo_rad, self.hi_rad, self.vmax_rad_s, self.margin_rad,
+            self.ts)
+        return qdot, LimitReport(s_scale, speed_scale, guarded_joints(guarded), sing)
+
+
+def _factors(s: SingularityMeasure) -> tuple[float, ...]:
+    return (float(s.shoulder_mm), float(s.elbow), float(s.wrist), float(s.shoulder_rate),
+            float(s.elbow_rate), float(s.wrist_rate))
+
+
+def guarded_joints(mask: np.ndarray) -> tuple[int, ...]:
+    """The joints a kernel's per-joint ``guarded`` mask marks, as 0-based indices."""
+    return tuple(np.flatnonzero(mask).tolist())

@@ -27,7 +27,7 @@ def forward_chain(admittance: AdmittanceController, q_deg):
     Jacobian take, so the chain is computed once per tick.
     """
     kin = admittance.kinematics(q_deg)
-    return kin, np.array(kin[1][-1][0]).T   # the chain stores 0R_6 by columns
+    return kin, kin[1][5, :3].T             # the chain stores 0R_6 by columns
 
 
 def external_wrench_h(gravity: GravityModel, to_h: WrenchTransform, wrench_s_raw: np.ndarray,

@@ -174,8 +174,8 @@ class ToothFrame:
         ``chain`` (its last frame is the flange), then the depth reference ``ctx.depth_ref``
         and the estimate's depth ``est.depth_mm`` from the tooth's pose now. A Finding when
         the strings fail while a reference is held."""
-        r_cols, p_0_6 = chain[1][-1]
-        finding = self.update(sample, np.array(r_cols).T, np.asarray(p_0_6, float))
+        flange = chain[1][5]                     # 0R_6 by columns, then the origin
+        finding = self.update(sample, flange[:3].T.copy(), flange[3].copy())
         if self._ref_t is None:
             return None
         if finding is not None:

@@ -58,8 +58,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from dentibot.control.filebeam import WORKING_PART_MM
-from dentibot.sim.canal_walls import wall_loads
 from dentibot.errors import ConfigError
+from dentibot.sim.canal_walls import wall_loads
 from dentibot.sim.nitifile import NiTiFile
 
 

@@ -370,8 +370,8 @@ class CalibratingTcp(Behaviour):
         if not pressed:
             return []
         tcp = self.routine
-        cols, o6 = rt.chain[1][-1]
-        result = tcp.add(np.array(cols).T, np.array(o6))
+        flange = rt.chain[1][5]                  # 0R_6 by columns, then the origin
+        result = tcp.add(flange[:3].T.copy(), flange[3].copy())
         if result is None:
             return [("tcp_point", f"pose {len(tcp.rotations)} recorded")]
         if isinstance(result, str):
