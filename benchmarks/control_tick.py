@@ -162,7 +162,7 @@ def print_report(r: dict) -> None:
     print(f"{'computation':<66}{'median us':>10}{'p99 us':>10}{'x ours':>8}")
     for key, title in (("full", "full control tick"), ("jacobian_solve", "Jacobian + 6x6 solve")):
         res = r[key]
-        for name, label in (("dentibot", "dentibot (closed form, Python floats)"),
+        for name, label in (("dentibot", "dentibot (closed form, compiled kernels)"),
                             ("numpy_dh", "plain numpy DH (six 4x4 matrices)"),
                             ("rtb", f"numpy + C kinematics ({rtb})")):
             d = res[name]
