@@ -79,7 +79,7 @@ class CanalAxisServo:
         self.reset()
 
     def reset(self) -> None:
-        self._tare = np.zeros(4)          # fx, fy (N), mx, my (N*m) out of the canal
+        self._tare = (0.0, 0.0, 0.0, 0.0)  # fx, fy (N), mx, my (N*m) out of the canal
         self._tared = False
         self._loads = None                 # filtered fx, fy (N), Gx, Gy (N*mm) in the canal
         #: the canal's direction's tilt from the tool axis, (x, y) in {H} (rad, small angle)
@@ -91,40 +91,43 @@ class CanalAxisServo:
         return math.atan(math.hypot(self.tilt[0], self.tilt[1]))
 
     def step(self, depth_mm: float | None, wrench_h) -> None:
-        """Take one period's depth (mm, None when unknown) and wrench at the tip in {H}."""
-        w = (wrench_h[0], wrench_h[1], wrench_h[3], wrench_h[4])
+        """Take one period's depth (mm, None when unknown) and wrench at the tip in {H}.
+        (Four numbers a period: plain floats, no numpy per-call overhead.)"""
+        w = (float(wrench_h[0]), float(wrench_h[1]), float(wrench_h[3]), float(wrench_h[4]))
         if depth_mm is None or depth_mm < 0.0:
             a = 1.0 if not self._tared else self._a_tare
-            self._tare += a * (np.asarray(w) - self._tare)
+            self._tare = tuple(t + a * (x - t) for x, t in zip(w, self._tare))
             self._tared = True
             self._loads = None
-            self.tilt[:] = 0.0
+            self.tilt = np.zeros(2)
             return
         if depth_mm < self.p.min_depth_mm:
             self._loads = None
-            self.tilt[:] = 0.0
+            self.tilt = np.zeros(2)
             return
         t = self._tare
         fx, fy = w[0] - t[0], w[1] - t[1]
         mx, my = (w[2] - t[2]) * 1e3, (w[3] - t[3]) * 1e3
-        x = np.array((fx, fy, -my, mx))    # F, and z x M: the loads' moment arms (N*mm)
-        if self._loads is None:                # the loads build up from zero in the canal
-            self._loads = np.zeros(4)
-        self._loads += self._a * (x - self._loads)
-        self.tilt = self.chord_tilt(depth_mm, self._loads[:2], self._loads[2:])
+        x = (fx, fy, -my, mx)              # F, and z x M: the loads' moment arms (N*mm)
+        loads = self._loads or (0.0, 0.0, 0.0, 0.0)   # they build up from zero in the canal
+        a = self._a
+        self._loads = loads = tuple(v + a * (u - v) for u, v in zip(x, loads))
+        self.tilt = self.chord_tilt(depth_mm, loads[:2], loads[2:])
 
     def chord_tilt(self, depth_mm: float, force_n, arms_nmm) -> np.ndarray:
         """The tilt (rad, x and y in {H}) of the chord of the file's part in a canal
         ``depth_mm`` deep under the lateral force ``force_n`` and the loads' moment arms
         ``arms_nmm`` (= z x M about the tip): steps 2-3 of the module docstring."""
-        d = depth_mm
+        d = float(depth_mm)
         b = self.beam
         c00, c0d, cdd = b.compliance_mm_n(0.0, 0.0), b.compliance_mm_n(0.0, d), \
             b.compliance_mm_n(d, d)
-        p_o = np.asarray(arms_nmm, dtype=float) / d
-        p_t = np.asarray(force_n, dtype=float) - p_o
-        chord = (c00 - c0d) * p_t + (c0d - cdd) * p_o
-        return chord / d
+        out = np.empty(2)
+        for i in range(2):
+            p_o = float(arms_nmm[i]) / d
+            p_t = float(force_n[i]) - p_o
+            out[i] = ((c00 - c0d) * p_t + (c0d - cdd) * p_o) / d
+        return out
 
     def twist(self) -> np.ndarray | None:
         """The rotation rate (rad/s in {H}, about the tip) that turns the tool axis towards the
