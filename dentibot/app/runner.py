@@ -30,6 +30,8 @@ from dentibot.control.filebeam import FileBeam
 from dentibot.runtime.config import RuntimeConfig, Thresholds, ToolGeometry, TreatmentPlan
 from dentibot.runtime.control_task import Runtime
 from dentibot.runtime.tool import tool_matrix
+from dentibot.sim.arm import ArmParams
+from dentibot.sim.bench_physics import BENCH
 from dentibot.sim.canal import CanalParams, material_params
 from dentibot.sim.ftsensor import FTSensorParams
 from dentibot.sim.nitifile import NiTiFile
@@ -60,15 +62,18 @@ def world_config(p: Protocol) -> WorldConfig:
                  "curve_angle_deg": ph.curve.angle_deg}
     tool = np.eye(4)
     tool[:3, 3] = p.tool.tip_mm
+    canal = CanalParams(working_length_mm=ph.working_length_mm, tilt_deg=ph.tilt_deg,
+                        **curve, **(PRESHAPED if ph.preshaped else {}),
+                        **material_params(ph.material.name, **ph.material.overrides()))
+    if p.simulator.canal_drag == "bench":
+        canal = BENCH.canal_drag(canal)
     return WorldConfig(
         seed=p.seed, ts=1.0 / p.control.rate_hz, tool=tool,
+        arm=BENCH.arm() if p.simulator.arm == "bench" else ArmParams(),
         sensor=FTSensorParams(offset_mm=p.tool.sensor_offset_mm),
         file=NiTiFile(size=p.file.size, taper=p.file.taper, length_mm=float(p.file.length_mm),
                       torsional_strength_mnm=p.file.torsional_strength_mnm),
-        canal=CanalParams(working_length_mm=ph.working_length_mm, tilt_deg=ph.tilt_deg,
-                          **curve, **(PRESHAPED if ph.preshaped else {}),
-                          **material_params(ph.material.name, **ph.material.overrides())),
-        orifice_gap_mm=ph.orifice_gap_mm, motion=p.patient.motion)
+        canal=canal, orifice_gap_mm=ph.orifice_gap_mm, motion=p.patient.motion)
 
 
 def runtime_config(p: Protocol) -> RuntimeConfig:

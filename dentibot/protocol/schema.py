@@ -170,6 +170,22 @@ class PatientSpec(Strict):
                              "forward, the force law correcting the rest; needs tracker)")
 
 
+class SimulatorSpec(Strict):
+    """The built-in simulator's physics, where it can be the ideal one or the one fitted to the
+    thesis bench's recordings (simulator only; see the sim-to-real page)."""
+
+    arm: Literal["ideal", "bench"] = Field(
+        "ideal", description="the arm's response to velocity commands: ideal (an 8 ms lag, "
+                             "the command realised in full) or bench (fitted to the bench's "
+                             "recordings: 16 ms dead time, a 6.3 ms lag, 0.80 of the command "
+                             "realised)")
+    canal_drag: Literal["none", "bench"] = Field(
+        "none", description="the canal walls' drag on the file: none, or bench (fitted to the "
+                            "bench's recordings: 0.11 N per mm/s and 0.34 N of Coulomb "
+                            "friction along the canal, 1.5 times that for a still file, "
+                            "0.10 N per mm/s across it)")
+
+
 class StalePeriods(Strict):
     """Control periods a stream may go without a new sample before it is a fault.
 
@@ -304,6 +320,7 @@ class Protocol(Strict):
     file: FileSpec = FileSpec()
     phantom: PhantomSpec = PhantomSpec()
     patient: PatientSpec = PatientSpec()
+    simulator: SimulatorSpec = SimulatorSpec()
     limits: LimitsSpec = LimitsSpec()
     recording: RecordingSpec = RecordingSpec()
     steps: Annotated[list[Step], Field(min_length=1, max_length=200)]

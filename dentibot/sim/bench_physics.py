@@ -134,12 +134,17 @@ class BenchPhysics:
         return ArmParams(servo_tau_s=self.arm_lag_s, vel_dead_time_s=self.arm_dead_time_s,
                          vel_gain=self.arm_gain)
 
-    def canal(self, base: CanalParams | None = None, efficiency: float = 0.7) -> CanalParams:
+    def canal_drag(self, base: CanalParams | None = None) -> CanalParams:
+        """``base`` (default: the default canal) with the walls' fitted drag on the file."""
         return replace(base or CanalParams(), drag_n_s_per_mm=self.drag_n_s_per_mm,
                        drag_coulomb_n=self.drag_coulomb_n, drag_v0_mm_s=self.drag_v0_mm_s,
                        drag_static_factor=self.drag_static_factor,
-                       drag_lat_n_s_per_mm=self.drag_lat_n_s_per_mm,
-                       bottom_n_mm=self.bottom_n_mm, support_mm_per_n=self.support_mm_per_n,
+                       drag_lat_n_s_per_mm=self.drag_lat_n_s_per_mm)
+
+    def canal(self, base: CanalParams | None = None, efficiency: float = 0.7) -> CanalParams:
+        """The bench's phantom: the drag, its bottom and its holder on the platform."""
+        return replace(self.canal_drag(base), bottom_n_mm=self.bottom_n_mm,
+                       support_mm_per_n=self.support_mm_per_n,
                        support_y_mm_per_n=self.support_y_mm_per_n,
                        bottom_torque_mnm_per_n=self.torque_press_mnm_per_n * efficiency)
 
