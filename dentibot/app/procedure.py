@@ -43,8 +43,13 @@ log = structlog.get_logger("dentibot.procedure")
 
 #: The built-in simulator's time options (see the module docstring).
 SIM_TIMES = ("lockstep", "free", "paced")
-#: Longest time the safe stop may spend withdrawing the file (procedure s).
-RETRACT_TIMEOUT_S = 20.0
+#: Longest time a retraction may take while it withdraws the file (procedure s): the
+#: deepest canal (30 mm) at the slowest progress allowed below.
+RETRACT_TIMEOUT_S = 150.0
+#: A retraction that withdraws the file less than ``RETRACT_PROGRESS_MM`` in
+#: ``RETRACT_STALL_S`` is stuck (assumption: the canal's drag can slow the -0.5 N retraction
+#: from about 3 mm/s to under 1 mm/s; 0.2 mm/s is well below that).
+RETRACT_PROGRESS_MM, RETRACT_STALL_S = 1.0, 5.0
 #: Longest time the safe stop records the file and the arm coming to rest (procedure s).
 REST_TIMEOUT_S = 1.0
 
@@ -275,9 +280,9 @@ class Procedure:
             in_canal = tr.in_state("treating") or tr.depth_known or tr.maybe_in
             if in_canal and rt.state not in ("treating.retracting", "fault"):
                 await self.command("retract")
-            if rt.state == "treating.retracting":
-                await self.run_for(RETRACT_TIMEOUT_S,
-                                   until=lambda r: r.state != "treating.retracting")
+            why = await self.finish_retraction()
+            if why is not None:
+                log.warning("safe stop: %s", why)
             if rt.state != "fault":
                 await self.command("stop")
             await self.run_for(REST_TIMEOUT_S, until=_at_rest)
@@ -287,6 +292,34 @@ class Procedure:
             log.warning("safe stop: %s", exc)
         finally:
             await self._stop_now()
+
+    async def finish_retraction(self, run_for=None) -> str | None:
+        """Wait while the machine retracts, as long as the file comes out: at least
+        :data:`RETRACT_PROGRESS_MM` every :data:`RETRACT_STALL_S`, for
+        :data:`RETRACT_TIMEOUT_S` at most. None once it no longer retracts (the file out, or
+        another state), else why it stopped waiting. ``run_for(seconds, until)``: how to wait
+        (default :meth:`run_for`)."""
+        rt = self.runtime
+        wait = run_for or (lambda s, until: self.run_for(s, until=until))
+        waited = 0.0
+
+        def depth() -> float | None:
+            return None if rt.last is None else rt.last.depth_mm
+
+        while rt.state == "treating.retracting":
+            d0 = depth()
+            await wait(RETRACT_STALL_S, lambda r: r.state != "treating.retracting")
+            waited += RETRACT_STALL_S
+            if rt.state != "treating.retracting":
+                return None
+            d1 = depth()
+            if d0 is not None and d1 is not None and d0 - d1 < RETRACT_PROGRESS_MM:
+                return (f"retraction stalled: the file withdrew {d0 - d1:.2f} mm in "
+                        f"{RETRACT_STALL_S:g} s, at {d1:.1f} mm")
+            if waited >= RETRACT_TIMEOUT_S:
+                return (f"retraction unfinished after {waited:g} s, the file at "
+                        f"{'?' if d1 is None else f'{d1:.1f}'} mm")
+        return None
 
     async def _stop_now(self) -> None:
         """File and arm stopped: between two ticks while the loop runs, else at once."""

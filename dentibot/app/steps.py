@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 
-from dentibot.app.procedure import RETRACT_TIMEOUT_S, Procedure
+from dentibot.app.procedure import Procedure
 from dentibot.app.tracker_calibration import (
     TrackerCalibration,
     TrackerCalibrationParams,
@@ -210,7 +210,10 @@ class StepExecutor:
             await proc.call(_passes(rt, 0))
             if rt.state != "treating.retracting":
                 await self.command("retract")
-            await self.run_for(RETRACT_TIMEOUT_S, until=lambda r: r.state in finished)
+            why = await proc.finish_retraction(self.run_for)
+            if why is not None:
+                await self._fault(why)
+                return
 
     async def start_drilling(self, passes: int) -> None:
         """The drill command, with ``passes`` more passes after the first."""

@@ -1,0 +1,62 @@
+"""A retraction is waited for as long as it brings the file out: a canal that drags the file
+slows it (the -0.5 N retraction withdraws about 3 mm/s in a drag-free canal, 0.7 mm/s with
+the bench's drag) without ending the wait; a file that does not come out is said to be stuck,
+with where it is."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+
+import pytest
+import structlog
+
+from dentibot.app.procedure import RETRACT_PROGRESS_MM, RETRACT_STALL_S, Procedure
+from dentibot.sim.bench_physics import BENCH
+from dentibot.sim.canal import CanalParams
+from dentibot.sim.world import WorldConfig
+
+
+@pytest.fixture(autouse=True)
+def _quiet():
+    structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.CRITICAL))
+
+
+async def _retract_from(proc: Procedure, depth_mm: float) -> tuple[str | None, float]:
+    rt = proc.runtime
+    assert await proc.command("drill") is None
+    assert await proc.run_for(120.0, until=lambda r: r.last is not None
+                              and r.last.depth_mm is not None and r.last.depth_mm > depth_mm)
+    assert await proc.command("retract") is None
+    t0 = proc.world.t
+    why = await proc.finish_retraction()
+    return why, proc.world.t - t0
+
+
+async def test_a_dragging_canal_slows_the_retraction_and_the_wait_goes_on():
+    canal = BENCH.canal_drag(CanalParams())
+    proc = Procedure.simulated(WorldConfig(seed=1, canal=canal))
+    async with proc:
+        why, took_s = await _retract_from(proc, 14.0)
+        rt = proc.runtime
+        assert why is None and rt.state == "done"
+        assert rt.last.depth_mm <= rt.cfg.plan.retract_to_mm
+    # 14.5 mm and more at under 1 mm/s: longer than a drag-free retraction's 5 s, and more
+    # than 20 s
+    assert took_s > 20.0
+
+
+async def test_a_file_that_does_not_come_out_is_reported_stuck():
+    """The bench's drag (0.34 N on a turning file, 0.51 N on a still one) against a
+    retraction of 0.05 N: the file does not come out."""
+    proc = Procedure.simulated(WorldConfig(seed=1, canal=BENCH.canal_drag(CanalParams())))
+    rt = proc.runtime
+    async with proc:
+        await proc.call(lambda: rt.configure(plan=replace(rt.cfg.plan, retract_fz_n=0.05)))
+        why, took_s = await _retract_from(proc, 6.0)
+        assert rt.state == "treating.retracting"
+    assert why is not None and why.startswith("retraction stalled"), why
+    assert f"in {RETRACT_STALL_S:g} s" in why
+    withdrawn = float(why.split("withdrew ")[1].split(" mm")[0])
+    assert withdrawn < RETRACT_PROGRESS_MM
+    assert took_s == pytest.approx(RETRACT_STALL_S, abs=0.01)
