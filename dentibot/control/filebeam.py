@@ -99,16 +99,10 @@ def beam_compliance(length_mm: float, step: float, i0: np.ndarray, i1: np.ndarra
     return max(x1 * x2 * a0 - (x1 + x2) * a1 + a2, 1e-9)
 
 
-_warm = False
-
-
 def warm_up() -> None:
-    """Compile (or load from the cache) :func:`beam_compliance` once per process (a control
-    loop must not pay a compilation at its first tick)."""
-    global _warm
-    if not _warm:
-        FileBeam().compliance_mm_n(1.0, 2.0)
-        _warm = True
+    """Compile (or load from the cache) :func:`beam_compliance` (a control loop must not pay
+    a compilation at its first tick). Called once, at import."""
+    FileBeam().compliance_mm_n(1.0, 2.0)
 
 
 warm_up()      # at import: before any device streams or loop runs

@@ -123,20 +123,12 @@ def joint_step(jh: np.ndarray, twist: np.ndarray, frames: np.ndarray, q_deg: np.
     return q_next, out, sing, s_scale, speed_scale, guarded
 
 
-_warm = False
-
-
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel of this module for the argument types
-    the admittance controller passes, once per process (see
-    :func:`dentibot.control.kinematics_kernels.warm_up`)."""
-    global _warm
-    if _warm:
-        return
+    the admittance controller, the limiter and the simulated arm's inverse kinematics pass
+    (see :func:`dentibot.control.kinematics_kernels.warm_up`). Called once, at import."""
     from dentibot.control.kinematics_kernels import dh_frames
-    from dentibot.control.kinematics_kernels import warm_up as warm_kinematics
 
-    warm_kinematics()
     dh = np.zeros((6, 5))
     dh[:, 0] = 1.0
     q, one = np.zeros(6), np.ones(6)
@@ -146,9 +138,9 @@ def warm_up() -> None:
                one, 0.1, 0.002)
     limit_rates(q, one, (1.0, 1.0, 1.0, 0.0, 0.0, 0.0), th, -one, one, one, 0.1, 0.002)
     singularity_scale((1.0, 1.0, 1.0, 0.0, 0.0, 0.0), th)
+    # explicit and omitted defaults are two signatures to numba: both are called
     damped_least_squares(np.eye(6), one, 0.05, 0.05)
     damped_least_squares(np.eye(6), one)
-    _warm = True
 
 
 warm_up()      # at import: before any device streams or loop runs

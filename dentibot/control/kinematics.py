@@ -105,17 +105,12 @@ class Meca500:
         joint_limits_deg: tuple[tuple[float, float], ...] = MECA500_JOINT_LIMITS_DEG,
         joint_speed_limits_deg_s: tuple[float, ...] = MECA500_JOINT_SPEED_LIMITS_DEG_S,
     ) -> None:
-        self._dh = tuple(
-            (
-                math.cos(math.radians(alpha)),
-                math.sin(math.radians(alpha)),
-                float(a),
-                math.radians(offset),
-                float(d),
-            )
+        # (cos alpha, sin alpha, a, theta offset rad, d) per joint, as the kernels take it
+        self._dh_arr = np.array([
+            (math.cos(math.radians(alpha)), math.sin(math.radians(alpha)), float(a),
+             math.radians(offset), float(d))
             for alpha, a, offset, d in dh
-        )
-        self._dh_arr = np.array(self._dh, dtype=float)
+        ])
         self.joint_limits_deg = np.array(joint_limits_deg, dtype=float)
         self.joint_speed_limits_deg_s = np.array(joint_speed_limits_deg_s, dtype=float)
         self.joint_speed_limits_rad_s = np.radians(self.joint_speed_limits_deg_s)

@@ -140,16 +140,10 @@ def singularity_factors(frames: np.ndarray, q_deg: np.ndarray, qdot_rad_s: np.nd
     return rho, elbow, wrist, rho_rate, elbow_rate, wrist_rate
 
 
-_warm = False
-
-
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel of this module for the argument types
-    the controller and the simulator pass, once per process: a control loop must not pay a
-    compilation at its first tick (100 ms and more)."""
-    global _warm
-    if _warm:
-        return
+    the controller and the simulator pass: a control loop must not pay a compilation at its
+    first tick (100 ms and more). Called once, at import."""
     dh = np.zeros((6, 5))
     dh[:, 0] = 1.0
     q = np.zeros(6)
@@ -158,7 +152,6 @@ def warm_up() -> None:
     point_jacobian(frames, pa[3], pa[:3], True)
     point_jacobian(frames, frames[5, 3], np.eye(3), False)
     singularity_factors(frames, q, q, True, 0.0, 4)
-    _warm = True
 
 
 warm_up()      # at import: before any device streams or loop runs

@@ -13,7 +13,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dentibot.control.joint_rate_kernels import limit_rates
-from dentibot.control.joint_rate_kernels import singularity_scale as _singularity_scale
 from dentibot.control.kinematics import Meca500, SingularityMeasure
 from dentibot.errors import ConfigError
 
@@ -93,9 +92,6 @@ class JointLimiter:
         self.thresholds = np.array([th.shoulder_stop_mm, th.shoulder_start_mm, th.elbow_stop,
                                     th.elbow_start, th.wrist_stop, th.wrist_start])
 
-    def singularity_scale(self, s: SingularityMeasure) -> float:
-        return _singularity_scale(_factors(s), self.thresholds)
-
     def apply(self, q_deg, qdot_rad_s: np.ndarray,
               sing: SingularityMeasure | None = None) -> tuple[np.ndarray, LimitReport]:
         """Limited joint rates (rad/s) for the configuration ``q_deg``
@@ -104,8 +100,8 @@ class JointLimiter:
             sing = self.robot.singularity(q_deg, qdot_rad_s)
         qdot, s_scale, speed_scale, guarded = limit_rates(
             np.asarray(q_deg, dtype=float), np.asarray(qdot_rad_s, dtype=float),
-            _factors(sing), self.thresholds, self.lo_rad, self.hi_rad, self.vmax_rad_s, self.margin_rad,
-            self.ts)
+            _factors(sing), self.thresholds, self.lo_rad, self.hi_rad, self.vmax_rad_s,
+            self.margin_rad, self.ts)
         return qdot, LimitReport(s_scale, speed_scale, guarded_joints(guarded), sing)
 
 

@@ -230,7 +230,6 @@ class Canal:
         n = math.ceil(self.bottom_mm / ds)
         self.n = n
         self.s = (np.arange(n) + 0.5) * ds                       # slice centres (mm)
-        self._sz = self.s.astype(complex)
         wl = p.working_length_mm
         dist_wl = np.maximum(wl - self.s, 0.0)
         self.R0 = (p.initial_apical_mm + p.initial_taper * dist_wl) / 2.0

@@ -164,24 +164,16 @@ def wall_loads(s: np.ndarray, g: np.ndarray, au: float, av: float, eu: float, ev
     return total, fu, fv, mu, mv, arm / total
 
 
-_warm = False
-
-
 def warm_up() -> None:
-    """Compile (or load from the cache) :func:`wall_loads` once per process, for the argument
-    types the canal passes (a simulator serving a real-time controller must not stall)."""
-    global _warm
-    if _warm:
-        return
+    """Compile (or load from the cache) :func:`wall_loads` for the argument types the canal
+    passes (a simulator serving a real-time controller must not stall). Called once, at
+    import."""
     from dentibot.control.filebeam import FileBeam
-    from dentibot.control.filebeam import warm_up as warm_beam
 
-    warm_beam()
     step, t0, t1, t2 = FileBeam().integrals
     s = np.arange(4) + 0.5
     wall_loads(s, np.full(4, 0.01), 0.01, 0.0, 0.05, 0.0, 4.0, 5.0, 0.5, 0.0, 25.0, step,
                t0, t1, t2)
-    _warm = True
 
 
 warm_up()      # at import: before any device streams or loop runs
