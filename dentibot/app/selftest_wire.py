@@ -41,13 +41,14 @@ import os
 import signal
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 from dentibot.app.procedure import Procedure
 from dentibot.app.selftest import FaultResult
+from dentibot.io.canopen_master import in_thread
+from dentibot.io.tasks import cancel_until_done
 from dentibot.runtime.config import RuntimeConfig, Thresholds, TreatmentPlan
 
 WIRE_FAULTS = ("ft_stream_stop", "arm_disconnect", "can_silence", "emcy",
@@ -217,27 +218,6 @@ async def run_wire_fault(name: str, seed: int = 1, settle_s: float = 0.3,
 
 
 # ---------------------------------------------------------------------- runtime faults
-async def _in_thread(fn: Callable[[], object]):
-    """``fn()`` in a thread of its own, joined before returning its result."""
-    loop = asyncio.get_running_loop()
-    done: asyncio.Future = loop.create_future()
-
-    def run() -> None:
-        try:
-            result = fn()
-        except BaseException as exc:  # noqa: BLE001 - handed to the awaiting task
-            loop.call_soon_threadsafe(lambda: done.done() or done.set_exception(exc))
-        else:
-            loop.call_soon_threadsafe(lambda: done.done() or done.set_result(result))
-
-    t = threading.Thread(target=run, name="selftest-connect", daemon=True)
-    t.start()
-    try:
-        return await done
-    finally:
-        t.join(1.0)
-
-
 class _ForeignCanMaster:
     """A second master on the CAN link: its own python-can socketcand connection, sending
     RxPDO1 (enable operation, profile velocity mode, ``file_rpm`` x the gear ratio) to the
@@ -265,9 +245,9 @@ class _ForeignCanMaster:
 
         from dentibot.io.canopen_protocol import CONTROLWORD, RXPDO1, Command, Mode
         # its own thread (joined): the handshake's server is this event loop
-        self._bus = await _in_thread(lambda: can.Bus(
+        self._bus = await in_thread(lambda: can.Bus(
             interface="socketcand", host="127.0.0.1", port=self.port, channel=self.channel,
-            tcp_tune=True))
+            tcp_tune=True), "selftest-foreign-master")
         data = RXPDO1.layout.pack((CONTROLWORD[Command.ENABLE_OPERATION],
                                    round(self.rpm * self.gear), int(Mode.PROFILE_VELOCITY)),
                                   "RxPDO1")
@@ -336,6 +316,7 @@ class _ForeignModbusClient:
         self.client = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=1)
         self.port, self.period_s = port, period_s
         self.writes = 0
+        self._stopping = False
         self._task: asyncio.Task | None = None
 
     async def connect(self) -> None:
@@ -352,17 +333,18 @@ class _ForeignModbusClient:
         self.writes += 1
 
     def start(self) -> None:
+        self._stopping = False
+
         async def again() -> None:
-            while True:
+            while not self._stopping:
                 await self.write()
                 await asyncio.sleep(self.period_s)
         self._task = asyncio.get_running_loop().create_task(again(), name="foreign-modbus")
 
     async def stop(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            await asyncio.gather(self._task, return_exceptions=True)
-            self._task = None
+        self._stopping = True
+        task, self._task = self._task, None
+        await cancel_until_done(task)       # a single cancel can be lost in pymodbus's request
         self.client.close()
 
 

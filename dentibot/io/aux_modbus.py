@@ -71,6 +71,7 @@ from dentibot.io.aux_registers import (
     version_text,
 )
 from dentibot.io.interfaces import AuxState, ConnectTimeout
+from dentibot.io.tasks import cancel_until_done
 
 log = structlog.get_logger(__name__)
 
@@ -211,15 +212,9 @@ class AuxModbusDriver:
         """Stop polling and close the link; idempotent."""
         task, self._task = self._task, None
         self._stopping = True
-        if task is not None:
-            # Python 3.11's asyncio.wait_for (inside pymodbus's connect and requests) can
-            # swallow a cancellation that coincides with its inner future finishing: cancel
-            # until the task is really done (the loop also checks _stopping).
-            while not task.done():
-                task.cancel()
-                await asyncio.wait({task}, timeout=0.1)
-            if not task.cancelled() and task.exception() is not None:
-                log.error("aux_modbus.poll_task_died", error=repr(task.exception()))
+        # the loop also checks _stopping; see cancel_until_done for why one cancel is not enough
+        if (died := await cancel_until_done(task, reraise=False)) is not None:
+            log.error("aux_modbus.poll_task_died", error=repr(died))
         self._link_up = False
         await self._drop_client()
 

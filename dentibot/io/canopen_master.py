@@ -275,16 +275,6 @@ async def in_thread(fn: Callable[[], Any], name: str) -> Any:
             th.join(timeout=1.0)
 
 
-async def cancel_task(task: asyncio.Task | None) -> None:
-    """Cancel ``task`` (if any) and wait until it has ended."""
-    if task is not None:
-        task.cancel()
-        try:
-            await task
-        except asyncio.CancelledError:
-            pass
-
-
 #: A frame handler: (payload, time of reception on the monotonic clock).
 Handler = Callable[[bytes, float], None]
 
@@ -530,4 +520,4 @@ class CanOpenMaster:
 
 
 __all__ = ["SOCKETCAND_PORT", "CanOpenMaster", "ConfigurationMismatch", "Handler", "SdoAbort",
-           "SocketcandBus", "cancel_task", "in_thread"]
+           "SocketcandBus", "in_thread"]

@@ -111,7 +111,6 @@ from dentibot.io.canopen_master import (
     ConfigurationMismatch,
     SdoAbort,
     SocketcandBus,
-    cancel_task,
 )
 from dentibot.io.canopen_protocol import (
     ABORT_CONNECTION_OPTIONS,
@@ -140,6 +139,7 @@ from dentibot.io.canopen_protocol import (
     State,
 )
 from dentibot.io.interfaces import ConnectTimeout, MotorState
+from dentibot.io.tasks import cancel_until_done
 
 log = structlog.get_logger(__name__)
 
@@ -711,7 +711,7 @@ class Epos4Driver(CanOpenMaster):
         """Stop the own cyclic task (hand the cycle over to :meth:`exchange`). The drive keeps
         its last commands; ``read()`` turns stale unless someone exchanges."""
         task, self._sync_task = self._sync_task, None
-        await cancel_task(task)
+        await cancel_until_done(task)
 
     async def _drive_cycles_until(self, pred: Callable[[], bool], deadline: float) -> bool:
         """Wait for ``pred`` while cycles run (the own task's, or exchanges made here)."""

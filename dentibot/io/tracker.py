@@ -54,7 +54,7 @@ import structlog
 from dentibot.errors import ConfigError, DeviceFault, ProtocolError
 from dentibot.io import canopen_protocol as co
 from dentibot.io import cia406
-from dentibot.io.canopen_master import CanOpenMaster, ConfigurationMismatch, cancel_task
+from dentibot.io.canopen_master import CanOpenMaster, ConfigurationMismatch
 from dentibot.io.canopen_protocol import NmtCommand, NmtState, OdObject
 from dentibot.io.interfaces import (
     STRING_FAULT,
@@ -66,6 +66,7 @@ from dentibot.io.interfaces import (
     ConnectTimeout,
     StringSample,
 )
+from dentibot.io.tasks import cancel_until_done
 
 log = structlog.get_logger(__name__)
 
@@ -305,7 +306,7 @@ class TrackerDriver(CanOpenMaster):
             return
         self._closed = True
         task, self._sync_task = self._sync_task, None
-        await cancel_task(task)
+        await cancel_until_done(task)
         if self._started and self._link_error is None:
             for nid in self.node_ids:
                 try:

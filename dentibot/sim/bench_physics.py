@@ -17,7 +17,7 @@ Units: mm, s, N, mNm (file torque as the bench logged it: eq 5.4, Km GR I).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 

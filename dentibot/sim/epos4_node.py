@@ -100,7 +100,7 @@ from dentibot.io.canopen_protocol import (
     PdoLayout,
     State,
 )
-from dentibot.io.canopen_master import cancel_task
+from dentibot.io.tasks import cancel_until_done
 from dentibot.sim.canopen_node import BusAttached, SdoServerAbort, SimNode
 from dentibot.sim.world import World
 
@@ -321,7 +321,7 @@ class Epos4Node(SimNode, BusAttached):
         self._disarm_consumer()
         await self._cancel_ramp()
         task, self._hb_task = self._hb_task, None
-        await cancel_task(task)
+        await cancel_until_done(task)
         self._detach()
 
     # ------------------------------------------------------------------ public helpers

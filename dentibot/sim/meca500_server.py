@@ -86,9 +86,8 @@ import time
 from collections import deque
 from typing import Self
 
-import structlog
-
 import numpy as np
+import structlog
 from scipy.spatial.transform import Rotation, Slerp
 
 from dentibot.control.kinematics import damped_least_squares, matrix_from_pose, pose_from_matrix

@@ -39,8 +39,8 @@ import structlog
 from dentibot.errors import ConfigError, ProtocolError
 from dentibot.io import canopen_protocol as co
 from dentibot.io import cia406
-from dentibot.io.canopen_master import cancel_task
 from dentibot.io.canopen_protocol import NmtState
+from dentibot.io.tasks import cancel_until_done
 from dentibot.io.tracker import DEFAULT_NODE_IDS
 from dentibot.sim.canopen_node import BusAttached, SdoServerAbort, SimNode
 from dentibot.sim.tracker_device import StringModel, TrackerSimParams
@@ -237,7 +237,7 @@ class TrackerNodes(BusAttached):
             return
         self._closed = True
         task, self._hb_task = self._hb_task, None
-        await cancel_task(task)
+        await cancel_until_done(task)
         self._detach()
 
     def _send(self, can_id: int, data: bytes) -> None:
