@@ -5,7 +5,7 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
-from conftest import depth
+from world_drive import depth
 
 from dentibot.sim import World, WorldConfig
 

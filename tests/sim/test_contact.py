@@ -6,7 +6,7 @@ import itertools
 
 import numpy as np
 import pytest
-from conftest import depth, drive
+from world_drive import depth, drive
 
 from dentibot.sim import CanalParams, World, WorldConfig
 from dentibot.sim.nitifile import NiTiFile

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from conftest import drive
+from world_drive import drive
 
 from dentibot.sim import World, WorldConfig
 

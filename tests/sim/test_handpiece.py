@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import drive
+from world_drive import drive
 
 from dentibot.errors import ConfigError
 from dentibot.sim import HandpieceModel, HandpieceParams, World, WorldConfig
