@@ -76,7 +76,8 @@ class Thresholds:
     patient_release_n: float = 1.0
     patient_release_s: float = 0.1
     # assumption: a real patient movement is followed within 2 s (the arm yields at
-    # 6.25 mm/s per N); a force that persists longer is sensor drift or a collision -> fault.
+    # 6.25 mm/s per N: a patient still pushing after 2 s would have moved the tooth 12 mm);
+    # a force not released by then is sensor drift, a collision or a ringing contact -> fault.
     patient_persist_s: float = 2.0
     # assumption: following a real movement relieves the force: after 0.3 s of following and
     # 2 mm of measured tip travel the force is below what triggered the following (the arm
