@@ -350,13 +350,19 @@ async def open_devices(cfg: DevicesConfig, *, home: bool = True,
     once the workspace is clear (:meth:`Meca500Driver.resume`, which refuses an arm in
     error).
 
-    What the process holds before the drive starts is frozen out of the garbage collector's
-    sight first (``gc.freeze``; unfrozen on exit): from the drive's enable on, its heartbeat
-    consumer watches the host every 30 ms, and a full collection over a start-up heap (the
-    libraries a command imports) can pause the event loop longer than that, which the drive
-    rightly takes for a dead host."""
+    What the process holds before the devices start is frozen out of the garbage collector's
+    sight first (``gc.freeze``; unfrozen on exit): from the aux I/O's watchdog (200 ms) and
+    the drive's heartbeat consumer (30 ms) on, the devices watch the host, and a full
+    collection over a start-up heap (the libraries a command imports) can pause the event
+    loop longer than that, which they rightly take for a dead host. Nothing is collected
+    first: a collection of a test process's heap takes 60-100 ms, twice that on a busy
+    machine, and one after the aux I/O armed its watchdog let it expire (the STO open, the
+    drive's enable refused); one before the connection could outlast what is left of a
+    previous connection's watchdog. Garbage frozen with the rest is freed after the exit."""
     a, f, h, x = cfg.arm, cfg.ft, cfg.handpiece, cfg.aux
     async with contextlib.AsyncExitStack() as stack:
+        gc.freeze()
+        stack.callback(gc.unfreeze)
         ft = NetFTDriver(f.host, f.port, f.http_port, counts_per_force=f.counts_per_force,
                          counts_per_torque=f.counts_per_torque,
                          stale_after_s=f.stale_after_ms / 1000.0)
@@ -368,12 +374,6 @@ async def open_devices(cfg: DevicesConfig, *, home: bool = True,
                                   connect_timeout_s=x.connect_timeout_s)
             await aux.connect()
             stack.push_async_callback(aux.close)
-        # frozen once the aux I/O feeds its own watchdog (a collection before that could
-        # outlast what is left of a previous connection's watchdog: host-lost, the STO open)
-        # and before the drive's heartbeat consumer starts
-        gc.collect()
-        gc.freeze()
-        stack.callback(gc.unfreeze)
         bus_kwargs = {"host": h.host, "port": h.port} if h.interface == "socketcand" else {}
         motor = Epos4Driver(interface=h.interface, channel=h.channel, host=h.host, port=h.port,
                             node_id=h.node_id, bus_kwargs=bus_kwargs or None,
