@@ -449,10 +449,13 @@ async def _run_runtime_fault(name: str, seed: int, settle_s: float,
 
 # ---------------------------------------------------------------------- host faults
 #: The child's protocol: calibrate the load, then drill at RPM for up to a minute. Loopback
-#: on a loaded machine: looser freshness bounds than hardware (50 periods).
+#: on a loaded machine: looser freshness bounds than hardware (50 periods), in the protocol and
+#: in the device file alike.
+CHILD_STALE_PERIODS = 50
+_N = CHILD_STALE_PERIODS
 PROTOCOL = f"""name: liveness
 seed: 1
-limits: {{stale_periods: {{arm: 50, ft: 50, motor: 50, aux: 200}}}}
+limits: {{stale_periods: {{arm: {_N}, ft: {_N}, motor: {_N}, aux: 200}}}}
 steps:
   - calibrate_load: {{}}
   - drill: {{rpm: {RPM:g}, rounds: [{{duration_s: 60}}]}}
@@ -485,7 +488,12 @@ async def child_simulators(directory: Path, seed: int = 1):
     try:
         async with VirtualDentiBot(WorldConfig(seed=seed), ports) as bot:
             devices = Path(directory) / "devices.yaml"
-            devices.write_text(devices_yaml(bot.devices_config()), encoding="utf-8")
+            cfg = bot.devices_config()
+            # the F/T driver's own freshness bound as loose as the protocol's (50 periods):
+            # its 20 ms hardware default acts first otherwise
+            cfg = cfg.model_copy(update={"ft": cfg.ft.model_copy(
+                update={"stale_after_ms": CHILD_STALE_PERIODS * _PERIOD_MS})})
+            devices.write_text(devices_yaml(cfg), encoding="utf-8")
             log = SpeedLog(bot.world)
             try:
                 yield bot, devices, log

@@ -119,7 +119,7 @@ from dentibot.io.aux_modbus import AuxModbusDriver
 from dentibot.io.epos4 import Epos4Driver
 
 async def main(modbus_port, can_port, watchdog_ms):
-    aux = AuxModbusDriver("127.0.0.1", modbus_port, watchdog_ms=watchdog_ms)
+    aux = AuxModbusDriver("127.0.0.1", modbus_port, watchdog_ms=watchdog_ms, stale_after_s=0.5)
     motor = Epos4Driver(interface="socketcand", port=can_port, channel="vcan0",
                         consumer_ms=0, stale_after_s=0.5, answer_timeout_s=0.5)
     await aux.connect()
