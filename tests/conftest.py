@@ -9,11 +9,13 @@
 from __future__ import annotations
 
 import asyncio
+import functools
 import gc
 import inspect
 import os
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -76,3 +78,36 @@ def pytest_collection_modifyitems(items):
 def _no_devices_from_the_environment(monkeypatch):
     """A developer's ``DENTIBOT_DEVICES`` must never send a test's run to their hardware."""
     monkeypatch.delenv("DENTIBOT_DEVICES", raising=False)
+
+
+#: what a test file says to be a wire test: real time on loopback sockets or a CAN bus
+WIRE_MARK = "pytestmark = pytest.mark.wire"
+
+
+@functools.cache
+def _on_the_wire(path: Path) -> bool:
+    """Whether the test file marks its tests ``wire`` (its module-level ``pytestmark``)."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError:
+        return False
+    return WIRE_MARK in text or "pytestmark = [pytest.mark.wire," in text
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """pytest-xdist's workers take one test file at a time (a module's fixtures run once),
+    and every file marked ``wire`` on one worker, one after another: two tests on the wire
+    at once, each with its simulators, drivers and child processes, met the drive's 30 ms
+    heartbeat consumer; one beside a CPU-bound worker holds its deadlines, as it must on a
+    busy machine. (A scheduler of its own: xdist's ``loadgroup`` renames node ids through
+    an attribute pytest 9.2 no longer reads.)"""
+    from xdist.scheduler import LoadScopeScheduling
+
+    root = config.rootpath
+
+    class WireApart(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            path = nodeid.split("::", 1)[0]
+            return "wire" if _on_the_wire(root / path) else path
+
+    return WireApart(config, log)

@@ -2,6 +2,8 @@ import pytest
 
 from dentibot.cli import main
 
+pytestmark = pytest.mark.wire
+
 
 def test_fk_prints_the_home_pose(capsys):
     assert main(["fk", "0", "0", "0", "0", "0", "0"]) == 0

@@ -11,6 +11,8 @@ import structlog
 from dentibot.io.devices import open_devices
 from dentibot.testing import WorldConfig
 
+pytestmark = pytest.mark.wire
+
 
 @pytest.fixture(autouse=True)
 def _quiet():

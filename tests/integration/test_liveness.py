@@ -56,7 +56,7 @@ REQUIRED_S = 0.100
 PROTOCOL = PRODUCT_PROTOCOL
 assert f"rpm: {RPM:g}" in PROTOCOL and RPM == 60.0 and STOPPED_RPM == 1.0
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.wire, pytest.mark.timeout(60)]
 
 
 @pytest.fixture(autouse=True)

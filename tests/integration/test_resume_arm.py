@@ -12,7 +12,7 @@ from dentibot.io.devices import ARM_PAUSED, open_devices
 from dentibot.io.meca500 import Meca500Driver
 from dentibot.session.commands import parse
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.wire, pytest.mark.timeout(60)]
 
 
 async def _leave_paused(cfg) -> None:

@@ -15,6 +15,8 @@ from dentibot.io.devices import open_devices
 from dentibot.runtime.config import RuntimeConfig, Thresholds
 from dentibot.sim.world import World, WorldConfig
 
+pytestmark = pytest.mark.wire
+
 HAND_N = (1.0, 0.0, 0.0)
 SECONDS = 0.6
 # Loopback on a shared 2-core machine: tolerate a few late samples before calling a stream stale

@@ -51,7 +51,7 @@ from dentibot.sim.aux_modbus_server import AuxModbusServer
 DOC = Path(__file__).resolve().parents[2] / "docs" / "aux-io-register-map.md"
 LOCAL = "127.0.0.1"
 
-pytestmark = pytest.mark.timeout(30)
+pytestmark = [pytest.mark.wire, pytest.mark.timeout(30)]
 
 
 # ---------------------------------------------------------------------------- helpers

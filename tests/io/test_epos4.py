@@ -40,7 +40,7 @@ from dentibot.io.interfaces import ConnectTimeout
 from dentibot.sim import HandpieceParams, RealTimeStepper, World, WorldConfig
 from dentibot.sim.epos4_node import Epos4Node
 
-pytestmark = pytest.mark.timeout(30)
+pytestmark = [pytest.mark.wire, pytest.mark.timeout(30)]
 
 GEAR = 67.0           # thesis 5.1
 KM = 16.0             # mNm/A, thesis 5.1

@@ -42,7 +42,7 @@ Q_RES = 0.001       # encoder quantum of the measured joints (deg)
 LAG = TS * (1.0 / -math.expm1(-TS / TAU) - 1.0)
 V = (10.0, -5.0, 8.0, 20.0, -15.0, 30.0)
 
-pytestmark = pytest.mark.timeout(30)
+pytestmark = [pytest.mark.wire, pytest.mark.timeout(30)]
 
 
 @contextlib.asynccontextmanager

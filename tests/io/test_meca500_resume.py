@@ -21,7 +21,7 @@ from dentibot.io.meca500 import RESETTABLE_ERRORS, Meca500Driver
 from dentibot.sim import RealTimeStepper, World, WorldConfig
 from dentibot.sim.meca500_server import Meca500Server
 
-pytestmark = pytest.mark.timeout(30)
+pytestmark = [pytest.mark.wire, pytest.mark.timeout(30)]
 
 NEAR_J1_LIMIT = (170.0, -10.0, 20.0, 0.0, 80.0, 0.0)     # J1 range is +-175 deg
 

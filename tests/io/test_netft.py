@@ -25,7 +25,7 @@ from dentibot.io.netft_protocol import Command, RdtRecord, encode_record, encode
 from dentibot.sim import FTSensorParams, RealTimeStepper, SimForceSensor, World, WorldConfig
 from dentibot.sim.netft_server import NetFTServer
 
-pytestmark = pytest.mark.timeout(30)
+pytestmark = [pytest.mark.wire, pytest.mark.timeout(30)]
 
 G = 9.80665
 #: Mini40 resolution in the World's sensor model: (Fx, Fy, Fz) N and torques N*m.

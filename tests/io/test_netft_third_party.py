@@ -13,7 +13,7 @@ import pytest
 from dentibot.sim import FTSensorParams, RealTimeStepper, World, WorldConfig
 from dentibot.sim.netft_server import NetFTServer
 
-pytestmark = pytest.mark.timeout(30)
+pytestmark = [pytest.mark.wire, pytest.mark.timeout(30)]
 
 CLEAN = {"offset_sigma_n": 0.0, "offset_sigma_nm": 0.0, "noise_n": (0.0, 0.0, 0.0),
          "noise_nm": 0.0, "mass_kg": 0.0}

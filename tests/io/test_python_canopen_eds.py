@@ -38,7 +38,7 @@ from dentibot.sim.epos4_node import EDS_PATH, Epos4Node, render_eds
 from dentibot.sim.serve import ServePorts, VirtualDentiBot
 from dentibot.sim.socketcand import SocketcandServer
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.wire, pytest.mark.timeout(60)]
 
 MAXON_VENDOR_ID = 0x0000_00FB          # CiA vendor id of maxon motor ag
 EPOS4_PRODUCT_CODE = 0x6552_0000       # EPOS4 Module 50/15 (maxon's configuration file)

@@ -37,7 +37,7 @@ from dentibot.sim import RealTimeStepper, TrackerSimParams, World, WorldConfig
 from dentibot.sim.serve import ServePorts, VirtualDentiBot
 from dentibot.sim.tracker_nodes import PRODUCT_CODE, VENDOR_ID, TrackerNodes
 
-pytestmark = pytest.mark.timeout(30)
+pytestmark = [pytest.mark.wire, pytest.mark.timeout(30)]
 
 STEP = 0.01                      # mm per unit
 NOISE = 0.003                    # mm rms (the simulator's default)

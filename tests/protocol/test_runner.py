@@ -16,6 +16,8 @@ from dentibot.telemetry.reader import read_recording
 from dentibot.telemetry.schema import validate_row
 from dentibot.telemetry.summary import summarize_file
 
+pytestmark = pytest.mark.wire
+
 SHORT = """\
 name: short
 seed: 2

@@ -11,6 +11,8 @@ from dentibot.errors import ConfigError
 from dentibot.runtime.clock import DeadlineStats, LockStepClock, RealTimeClock
 from dentibot.runtime.deadline_timer import deadline_timer
 
+pytestmark = pytest.mark.wire
+
 
 def test_deadline_stats_quantiles_and_overruns_from_known_lateness():
     s = DeadlineStats(0.002)

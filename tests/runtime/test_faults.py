@@ -16,6 +16,8 @@ from dentibot.runtime.observers import ObserverLimits
 from dentibot.sim.faults import FAULTS
 from dentibot.sim.world import WorldConfig
 
+pytestmark = pytest.mark.wire
+
 
 def test_every_fault_has_an_expectation():
     assert set(EXPECT) == set(FAULTS)

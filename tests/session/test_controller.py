@@ -17,6 +17,8 @@ from dentibot.session.controller import SessionController, SessionOptions
 from dentibot.telemetry.reader import read_recording
 from dentibot.telemetry.summary import summarize_file
 
+pytestmark = pytest.mark.wire
+
 
 async def say(c: SessionController, line: str):
     replies = await c.execute(line)

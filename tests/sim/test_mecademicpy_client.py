@@ -33,7 +33,7 @@ from dentibot.sim.meca500_server import Meca500Server
 
 mdr = pytest.importorskip("mecademicpy.robot")
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.wire, pytest.mark.timeout(60)]
 
 ZERO_POSE = (190.0, 0.0, 308.0, 0.0, 90.0, 0.0)     # flange at zero joints (product data)
 HOME = (0.0, -10.0, 20.0, 0.0, 80.0, 0.0)

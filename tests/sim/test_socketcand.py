@@ -34,7 +34,7 @@ from dentibot.sim.socketcand import (
     parse_send,
 )
 
-pytestmark = pytest.mark.timeout(30)
+pytestmark = [pytest.mark.wire, pytest.mark.timeout(30)]
 
 
 def channel() -> str:
