@@ -13,6 +13,7 @@ import functools
 import gc
 import inspect
 import os
+import re
 import threading
 import time
 from pathlib import Path
@@ -80,18 +81,18 @@ def _no_devices_from_the_environment(monkeypatch):
     monkeypatch.delenv("DENTIBOT_DEVICES", raising=False)
 
 
-#: what a test file says to be a wire test: real time on loopback sockets or a CAN bus
-WIRE_MARK = "pytestmark = pytest.mark.wire"
+#: how a test file marks its tests wire (real time on loopback sockets or a CAN bus): its
+#: module-level pytestmark, alone or first in a list
+WIRE_MARK = re.compile(r"^pytestmark = \[?pytest\.mark\.wire\b", re.M)
 
 
 @functools.cache
 def _on_the_wire(path: Path) -> bool:
-    """Whether the test file marks its tests ``wire`` (its module-level ``pytestmark``)."""
+    """Whether the test file marks its tests ``wire``."""
     try:
-        text = path.read_text(encoding="utf-8")
+        return WIRE_MARK.search(path.read_text(encoding="utf-8")) is not None
     except OSError:
         return False
-    return WIRE_MARK in text or "pytestmark = [pytest.mark.wire," in text
 
 
 def pytest_xdist_make_scheduler(config, log):

@@ -316,7 +316,6 @@ class _ForeignModbusClient:
         self.client = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=1)
         self.port, self.period_s = port, period_s
         self.writes = 0
-        self._stopping = False
         self._task: asyncio.Task | None = None
 
     async def connect(self) -> None:
@@ -333,16 +332,13 @@ class _ForeignModbusClient:
         self.writes += 1
 
     def start(self) -> None:
-        self._stopping = False
-
         async def again() -> None:
-            while not self._stopping:
+            while True:
                 await self.write()
                 await asyncio.sleep(self.period_s)
         self._task = asyncio.get_running_loop().create_task(again(), name="foreign-modbus")
 
     async def stop(self) -> None:
-        self._stopping = True
         task, self._task = self._task, None
         await cancel_until_done(task)       # a single cancel can be lost in pymodbus's request
         self.client.close()
@@ -452,10 +448,10 @@ async def _run_runtime_fault(name: str, seed: int, settle_s: float,
 #: on a loaded machine: looser freshness bounds than hardware (50 periods), in the protocol and
 #: in the device file alike.
 CHILD_STALE_PERIODS = 50
-_N = CHILD_STALE_PERIODS
 PROTOCOL = f"""name: liveness
 seed: 1
-limits: {{stale_periods: {{arm: {_N}, ft: {_N}, motor: {_N}, aux: 200}}}}
+limits: {{stale_periods: {{arm: {CHILD_STALE_PERIODS}, ft: {CHILD_STALE_PERIODS},
+                         motor: {CHILD_STALE_PERIODS}, aux: 200}}}}
 steps:
   - calibrate_load: {{}}
   - drill: {{rpm: {RPM:g}, rounds: [{{duration_s: 60}}]}}

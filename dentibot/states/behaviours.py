@@ -318,9 +318,10 @@ class PatientMoved(Behaviour):
         # not released in time, whether the force stayed up or kept crossing the threshold
         # (a contact ringing through the arm's delay is never below it long enough)
         if self.ticks * rt.ts > th.patient_persist_s:
+            above = 100.0 * self.above_ticks / self.ticks
             return [("fault", (f"force not released {th.patient_persist_s} s after the "
                                f"patient-moved trigger while the arm follows: at or above "
-                               f"{th.patient_release_n} N {100.0 * self.above_ticks / self.ticks:.0f} "
+                               f"{th.patient_release_n} N {above:.0f} "
                                f"% of the time, now {est.force_norm_n:.2f} N, peak "
                                f"{self.peak_n:.2f} N: sensor drift, a collision or a "
                                "ringing contact, not a patient movement"))]
