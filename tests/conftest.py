@@ -12,10 +12,12 @@ import asyncio
 import functools
 import gc
 import inspect
+import multiprocessing
 import os
 import re
 import threading
 import time
+from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -58,6 +60,33 @@ def _no_leaked_threads_or_sockets():
     assert not new_socks, f"test leaked {len(new_socks)} socket(s): {sorted(new_socks)}"
 
 
+@pytest.fixture(scope="module")
+def worker_runs():
+    """Start long independent runs in two spawned worker processes, for a module's fixture:
+    ``worker_runs({key: (fn, *args)})`` submits them in the order given and returns their
+    futures; the pool is shut down with the module.
+
+    It returns once the pool's own threads are up: the call queue's feeder thread starts at
+    the pool's first put, a moment after ``submit`` returned; started later, inside the first
+    test, the thread-leak check would count it as that test's."""
+    pools: list[ProcessPoolExecutor] = []
+
+    def start(calls: dict) -> dict[str, Future]:
+        pool = ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn"))
+        pools.append(pool)
+        futures = {key: pool.submit(*call) for key, call in calls.items()}
+        deadline = time.monotonic() + 10.0
+        while not any(t.name == "QueueFeederThread" for t in threading.enumerate()):
+            if time.monotonic() > deadline:
+                raise TimeoutError("the worker pool's call queue was never fed")
+            time.sleep(0.005)
+        return futures
+
+    yield start
+    for pool in pools:
+        pool.shutdown(cancel_futures=True)
+
+
 @pytest.fixture
 async def _no_leaked_tasks():
     before = asyncio.all_tasks()
@@ -83,7 +112,7 @@ def _no_devices_from_the_environment(monkeypatch):
 
 #: how a test file marks its tests wire (real time on loopback sockets or a CAN bus): its
 #: module-level pytestmark, alone or first in a list
-WIRE_MARK = re.compile(r"^pytestmark = \[?pytest\.mark\.wire\b", re.M)
+WIRE_MARK = re.compile(r"^pytestmark = \[?pytest\.mark\.wire\b", re.MULTILINE)
 
 
 @functools.cache

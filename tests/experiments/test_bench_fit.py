@@ -4,8 +4,6 @@ Reads the recordings' per-trial figures from ../shared/bench (relative to the re
 skips when they are absent."""
 
 import csv
-import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -43,14 +41,12 @@ REACHED = {"A": 0.88, "B": 0.89, "C": 0.86, "C_K250": 0.77}
 
 
 @pytest.fixture(scope="module")
-def bench_runs():
+def bench_runs(worker_runs):
     """The four configurations' bench runs, two at a time in worker processes (each run is
     independent and as long as the others)."""
     if not TRIALS.exists():
         pytest.skip("bench recordings absent")
-    pool = ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn"))
-    yield {c: pool.submit(run_bench, BenchSpec(c)) for c in BENCH_CONFIGS}
-    pool.shutdown(cancel_futures=True)
+    return worker_runs({c: (run_bench, BenchSpec(c)) for c in BENCH_CONFIGS})
 
 
 _SHARES: dict = {}

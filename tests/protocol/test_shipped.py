@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import multiprocessing
-from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -39,13 +37,9 @@ def _run(path: str):
 
 
 @pytest.fixture(scope="module")
-def shipped_runs():
-    pool = ProcessPoolExecutor(max_workers=2, mp_context=multiprocessing.get_context("spawn"))
-    futures: dict[str, Future] = {}
-    for path in sorted(SHIPPED, key=_planned_s, reverse=True):
-        futures[path.stem] = pool.submit(_run, str(path))
-    yield futures
-    pool.shutdown(cancel_futures=True)
+def shipped_runs(worker_runs):
+    return worker_runs({p.stem: (_run, str(p)) for p in sorted(SHIPPED, key=_planned_s,
+                                                               reverse=True)})
 
 
 @pytest.mark.timeout(300)
