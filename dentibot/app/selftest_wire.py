@@ -484,11 +484,9 @@ async def child_simulators(directory: Path, seed: int = 1):
     try:
         async with VirtualDentiBot(WorldConfig(seed=seed), ports) as bot:
             devices = Path(directory) / "devices.yaml"
-            cfg = bot.devices_config()
             # the F/T driver's own freshness bound as loose as the protocol's (50 periods):
             # its 20 ms hardware default acts first otherwise
-            cfg = cfg.model_copy(update={"ft": cfg.ft.model_copy(
-                update={"stale_after_ms": CHILD_STALE_PERIODS * _PERIOD_MS})})
+            cfg = bot.devices_config(ft_stale_after_ms=CHILD_STALE_PERIODS * _PERIOD_MS)
             devices.write_text(devices_yaml(cfg), encoding="utf-8")
             log = SpeedLog(bot.world)
             try:

@@ -233,13 +233,17 @@ def loopback_config(host: str = "127.0.0.1", meca_port: int = 10000, netft_port:
                     netft_http_port: int = 8080, modbus_port: int = 5020,
                     can_port: int = 29536, can_channel: str = "vcan0",
                     meca_monitor_port: int | None = None,
-                    tracker: TrackerConfig | None = None) -> DevicesConfig:
+                    tracker: TrackerConfig | None = None,
+                    ft_stale_after_ms: float | None = None) -> DevicesConfig:
     """The addresses ``dentibot sim serve`` listens on (by default: its default ports; the
-    Meca500 monitoring port is the next one unless given; ``tracker`` as given)."""
+    Meca500 monitoring port is the next one unless given; ``tracker`` as given; the F/T
+    driver's own freshness bound ``ft_stale_after_ms``, the hardware default unless
+    given)."""
+    ft = {} if ft_stale_after_ms is None else {"stale_after_ms": ft_stale_after_ms}
     return DevicesConfig(
         arm=ArmConfig(host=host, control_port=meca_port,
                       monitor_port=meca_monitor_port or meca_port + 1),
-        ft=FTConfig(host=host, port=netft_port, http_port=netft_http_port),
+        ft=FTConfig(host=host, port=netft_port, http_port=netft_http_port, **ft),
         handpiece=HandpieceConfigIO(interface="socketcand", host=host, port=can_port,
                                     channel=can_channel),
         aux=AuxConfig(host=host, port=modbus_port), tracker=tracker)

@@ -106,14 +106,18 @@ class VirtualDentiBot:
             "can_interface": self.cfg.can_interface,
         }
 
-    def devices_config(self, tracker: bool = False) -> DevicesConfig:
+    def devices_config(self, tracker: bool = False,
+                       ft_stale_after_ms: float | None = None) -> DevicesConfig:
         """The device configuration that points the real drivers at these simulators
-        (``tracker``: with the patient tracker's section, its geometry the simulator's)."""
+        (``tracker``: with the patient tracker's section, its geometry the simulator's;
+        ``ft_stale_after_ms``: the F/T driver's own freshness bound, the hardware default
+        unless given)."""
         p = self.ports
         return loopback_config(p["host"], p["meca_port"], p["netft_port"], p["netft_http_port"],
                                p["modbus_port"], p["can_port"], p["can_channel"],
                                meca_monitor_port=p["meca_monitor_port"],
-                               tracker=self.tracker_config() if tracker else None)
+                               tracker=self.tracker_config() if tracker else None,
+                               ft_stale_after_ms=ft_stale_after_ms)
 
     def tracker_config(self) -> TrackerConfig:
         """The ``tracker:`` section for the simulated encoders (through socketcand; SYNC

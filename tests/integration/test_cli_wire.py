@@ -56,12 +56,14 @@ def test_protocol_runs_against_the_wire_simulators_in_another_process(tmp_path):
         devices = tmp_path / "devices.yaml"
         devices.write_text(
             f"arm: {{host: 127.0.0.1, control_port: {meca}, monitor_port: {meca_mon}}}\n"
-            f"ft: {{host: 127.0.0.1, port: {netft}, http_port: {http}}}\n"
+            f"ft: {{host: 127.0.0.1, port: {netft}, http_port: {http}, "
+            "stale_after_ms: 100}\n"
             f"handpiece: {{interface: socketcand, host: 127.0.0.1, port: {can}, "
             "channel: vcan0}\n"
             f"aux: {{host: 127.0.0.1, port: {modbus}}}\n")
         protocol = tmp_path / "p.yaml"
-        # a loaded CI machine delays loopback samples: looser freshness bounds than hardware
+        # a loaded CI machine delays loopback samples: looser freshness bounds than hardware,
+        # the F/T driver's own (100 ms in the device file above) as loose as the protocol's
         protocol.write_text(
             "name: wire\nlimits: {stale_periods: {arm: 50, ft: 50, motor: 50, aux: 200}}\n"
             "steps:\n  - calibrate_load: {}\n  - drag: {duration_s: 0.5}\n")

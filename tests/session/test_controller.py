@@ -262,7 +262,8 @@ async def test_devices_over_the_wire_connect_refuse_estop_and_close_everything()
     world = World(WorldConfig(seed=5))
     ports = ServePorts(meca_port=0, netft_port=0, netft_http_port=0, modbus_port=0, can_port=0)
     async with VirtualDentiBot(world, ports) as bot:
-        c = SessionController(SessionOptions(protocol=p, devices=bot.devices_config()))
+        c = SessionController(SessionOptions(protocol=p,
+                                             devices=bot.devices_config(ft_stale_after_ms=50)))
         try:
             r = await say(c, "connect")
             assert r.kind == "ok" and "devices (arm 127.0.0.1" in r.text
