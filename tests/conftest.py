@@ -72,11 +72,13 @@ def worker_runs():
     pools: list[ProcessPoolExecutor] = []
 
     def start(calls: dict) -> dict[str, Future]:
+        before = set(threading.enumerate())    # another pool's feeder may still be ending
         pool = ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn"))
         pools.append(pool)
         futures = {key: pool.submit(*call) for key, call in calls.items()}
         deadline = time.monotonic() + 10.0
-        while not any(t.name == "QueueFeederThread" for t in threading.enumerate()):
+        while not any(t.name == "QueueFeederThread" and t not in before
+                      for t in threading.enumerate()):
             if time.monotonic() > deadline:
                 raise TimeoutError("the worker pool's call queue was never fed")
             time.sleep(0.005)
