@@ -46,7 +46,9 @@ def _threads() -> set[threading.Thread]:
 
 @pytest.fixture(autouse=True)
 def _no_leaked_threads_or_sockets():
-    threads, socks = _threads(), _sockets()
+    # before: every thread started, including those not yet running (a busy machine can hold
+    # a just-started thread back, not alive yet, past this snapshot: it is not the test's)
+    threads, socks = set(threading.enumerate()), _sockets()
     yield
     deadline = time.monotonic() + 2.0
     while True:
@@ -66,9 +68,9 @@ def worker_runs():
     ``worker_runs({key: (fn, *args)})`` submits them in the order given and returns their
     futures; the pool is shut down with the module.
 
-    It returns once the pool's own threads are up: the call queue's feeder thread starts at
-    the pool's first put, a moment after ``submit`` returned; started later, inside the first
-    test, the thread-leak check would count it as that test's."""
+    It returns once the pool's own threads are started: the call queue's feeder thread starts
+    at the pool's first put, a moment after ``submit`` returned; started later, inside the
+    first test, the thread-leak check would count it as that test's."""
     pools: list[ProcessPoolExecutor] = []
 
     def start(calls: dict) -> dict[str, Future]:
