@@ -21,6 +21,7 @@ import structlog
 
 from dentibot.app.procedure import Procedure
 from dentibot.app.steps import Aborted, StepExecutor
+from dentibot.app.device_bounds import stale_bound_conflict
 from dentibot.app.tracking import sim_tracking, tracked_config
 from dentibot.errors import ConfigError
 from dentibot.io.devices import DevicesConfig, open_devices
@@ -139,19 +140,6 @@ class RunResult:
         return EXIT_CODES.get(self.summary.status, 1)
 
 
-def _warn_looser_than_driver(protocol: Protocol, devices: DevicesConfig) -> None:
-    """Say so when the protocol's freshness bound on the F/T stream is looser than the F/T
-    driver's own (the device file's ``ft.stale_after_ms``): the driver's acts first, and the
-    protocol's looser bound never takes effect."""
-    ms = protocol.limits.stale_periods.ft * 1000.0 / protocol.control.rate_hz
-    if devices.ft.stale_after_ms < ms:
-        log.warning(f"limits.stale_periods.ft is {protocol.limits.stale_periods.ft} periods "
-                    f"({ms:g} ms), looser than the F/T driver's own bound ft.stale_after_ms "
-                    f"{devices.ft.stale_after_ms:g} ms in the device file, which acts first: "
-                    "raise that too for the protocol's bound to take effect",
-                    protocol=protocol.name)
-
-
 class ProtocolRunner:
     """Build the procedure of ``protocol`` (on the built-in simulator, or over ``devices``) and
     run its steps.
@@ -204,7 +192,9 @@ class ProtocolRunner:
                 sink=self._row, event_sink=self._event, **sim_tracking(protocol))
         else:
             self._cfg = tracked_config(protocol, runtime_config(protocol), devices)
-            _warn_looser_than_driver(protocol, devices)
+            conflict = stale_bound_conflict(protocol, devices)
+            if conflict:
+                log.warning(conflict, protocol=protocol.name)
         if devices is not None and not calibrate:
             raise ConfigError("steps", [s.kind for s in protocol.steps],
                               "a calibrate_load step (real devices need the load identified "
