@@ -4,7 +4,7 @@ Two bounds guard the F/T stream: the F/T driver's ``ft.stale_after_ms`` (the dev
 the protocol's ``limits.stale_periods.ft`` (control periods). The tighter one acts first, so a
 protocol that loosens its bound beyond the driver's (a loaded machine talking to simulators
 over loopback, say) does not get what it asked for; :func:`stale_bound_conflict` says so in
-words a run and a session can show before anything connects."""
+words that a run logs before it starts and a session adds to its connect reply."""
 
 from __future__ import annotations
 

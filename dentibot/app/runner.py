@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import structlog
 
+from dentibot.app.device_bounds import stale_bound_conflict
 from dentibot.app.procedure import Procedure
 from dentibot.app.steps import Aborted, StepExecutor
-from dentibot.app.device_bounds import stale_bound_conflict
 from dentibot.app.tracking import sim_tracking, tracked_config
 from dentibot.errors import ConfigError
 from dentibot.io.devices import DevicesConfig, open_devices

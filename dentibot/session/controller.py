@@ -27,11 +27,11 @@ from pathlib import Path
 
 import structlog
 
+from dentibot.app.device_bounds import stale_bound_conflict
 from dentibot.app.procedure import Procedure
 from dentibot.app.runner import runtime_config, world_config
 from dentibot.app.steps import StepExecutor, align_plan
 from dentibot.app.tracker_calibration import START_STATES as CALIBRATION_START_STATES
-from dentibot.app.device_bounds import stale_bound_conflict
 from dentibot.app.tracking import sim_tracking, tracked_config
 from dentibot.errors import DentibotError
 from dentibot.io.devices import DevicesConfig, load_devices_config, open_devices
@@ -305,10 +305,11 @@ class SessionController:
         finally:
             self._busy = None
         nxt = "calibrate load" if not self.runtime.treatment.gravity_known else "drag or align"
-        out = [Reply("ok", f"connected: {self.source}; state {self.state}; next: {nxt}")]
-        conflict = (None if self.devices_cfg is None
-                    else stale_bound_conflict(self.protocol, self.devices_cfg))
-        return out + ([Reply("info", conflict)] if conflict else [])
+        replies = [Reply("ok", f"connected: {self.source}; state {self.state}; next: {nxt}")]
+        if self.devices_cfg is not None and (
+                conflict := stale_bound_conflict(self.protocol, self.devices_cfg)):
+            replies.append(Reply("info", conflict))
+        return replies
 
     async def _cmd_calibrate(self, cmd: Command) -> list[Reply]:
         trigger = f"calibrate_{cmd.sub}"

@@ -51,7 +51,8 @@ async def test_same_motion_in_process_and_over_the_wire():
     assert local[0] == pytest.approx(18.75 * SECONDS, rel=0.05)
 
     world = World(WorldConfig(seed=21))
-    async with serve_wire(world) as bot, open_devices(bot.devices_config(ft_stale_after_ms=LOOSE_FT_MS)) as d:
+    async with serve_wire(world) as bot, \
+            open_devices(bot.devices_config(ft_stale_after_ms=LOOSE_FT_MS)) as d:
         proc = Procedure.over(d, RuntimeConfig(tool=tool_geometry_of(world), thresholds=LOOSE),
                               gravity=true_gravity_model(world))
         wire = await _drag(proc, world)
