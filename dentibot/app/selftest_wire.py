@@ -27,7 +27,8 @@ Loopback on a shared machine delays samples: the stale bounds are 20 control per
 (:data:`WIRE_STALE_PERIODS`, 40 ms at 500 Hz) rather than the hardware's 4, and every bound
 below allows :data:`WIRE_SLACK_MS` (30 ms; :data:`FOREIGN_CAN_SLACK_MS`, 60 ms, with the
 foreign CAN master's traffic in the same process) of scheduling on top of what the
-configuration implies. Each result carries the bounds it was held to.
+configuration implies; with the foreign master the motor's stale bound has the same extra
+30 ms (:func:`wire_stale_periods`). Each result carries the bounds it was held to.
 """
 
 from __future__ import annotations
@@ -99,6 +100,18 @@ WIRE_SLACK_MS = 30.0
 #: ... and on top of the foreign CAN master's, whose 1.5 k frames/s (its own and the bus
 #: traffic it reads) run in the simulators' process: twice as much.
 FOREIGN_CAN_SLACK_MS = 2 * WIRE_SLACK_MS
+
+
+def wire_stale_periods(name: str) -> dict[str, int]:
+    """The runtime's stale bounds for fault ``name``: :data:`WIRE_STALE_PERIODS`, the motor's
+    longer by the foreign CAN master's extra slack when it shares the process (its frames
+    delay the drive's TPDOs as they delay every other bound's events)."""
+    out = dict(WIRE_STALE_PERIODS)
+    if name == "can_foreign_master":
+        out["motor"] += round((FOREIGN_CAN_SLACK_MS - WIRE_SLACK_MS) / _PERIOD_MS)
+    return out
+
+
 #: The drilling speed (file rpm) and the foreign master's (file rpm).
 RPM = 60.0
 FOREIGN_RPM = 150.0
@@ -351,7 +364,7 @@ async def _run_runtime_fault(name: str, seed: int, settle_s: float,
     from dentibot.sim.world import World, WorldConfig
 
     world = World(WorldConfig(seed=seed))
-    th = Thresholds(stale_periods=dict(WIRE_STALE_PERIODS))
+    th = Thresholds(stale_periods=wire_stale_periods(name))
     rows: list[dict] = []
     arrived: list[float] = []          # when each row reached the sink (monotonic)
 

@@ -9,7 +9,8 @@ import math
 import pytest
 
 from dentibot.app.selftest import EXPECT, run_fault
-from dentibot.app.selftest_wire import HOST_FAULTS, WIRE_FAULTS, run_wire_fault
+from dentibot.app.selftest_wire import (HOST_FAULTS, WIRE_FAULTS, run_wire_fault,
+                                        wire_stale_periods)
 from dentibot.io.epos4 import DEFAULT_QUICK_STOP_FILE_RPM_S
 from dentibot.runtime.config import RuntimeConfig
 from dentibot.runtime.observers import ObserverLimits
@@ -159,3 +160,11 @@ def test_simulators_bind_loopback_by_default():
     for cls in (Meca500Server, NetFTServer, AuxModbusServer, SocketcandServer):
         assert inspect.signature(cls).parameters["host"].default == "127.0.0.1", cls
     assert ServePorts().host == "127.0.0.1"
+
+
+def test_the_foreign_can_master_gives_the_motor_stream_its_extra_slack():
+    """40 ms (20 periods of 2 ms) for every stream; with the foreign master's traffic in the
+    process, the motor's 30 ms more: 70 ms, 35 periods. The others keep theirs."""
+    assert wire_stale_periods("emcy") == {"arm": 20, "ft": 20, "motor": 20, "aux": 100}
+    assert wire_stale_periods("can_foreign_master") == {"arm": 20, "ft": 20, "motor": 35,
+                                                        "aux": 100}
