@@ -57,9 +57,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dentibot.control.filebeam import WORKING_PART_MM
 from dentibot.errors import ConfigError
-from dentibot.sim.canal_walls import wall_loads
+from dentibot.sim import canal_kernels as kern
 from dentibot.sim.nitifile import NiTiFile
 
 
@@ -221,7 +220,11 @@ class Interaction:
 
 
 class Canal:
-    """Tooth phantom canal state (lumen per slice, debris) and its file interaction."""
+    """Tooth phantom canal state (lumen per slice, debris) and its file interaction.
+
+    The state lives in arrays (:mod:`dentibot.sim.canal_kernels`: ``R``, the slices' ``h``,
+    the state ``st`` and the constants ``cp``); the laws are the compiled kernels there, which
+    the methods here call."""
 
     def __init__(self, params: CanalParams = CanalParams()) -> None:
         self.p = p = params
@@ -239,9 +242,6 @@ class Canal:
         self.width0 = 2.0 * (self.R0 + p.stain_mm) * ds * self.in_wl   # red area before
         self.red0 = float(self.width0.sum())
         self.pulp0 = float(self._pulp().sum())
-        self.debris_mm3 = 0.0
-        self._entered = False
-        self._feed = 0.0           # filtered feed rate (mm/s)
         ct, st = math.cos(math.radians(p.tilt_deg)), math.sin(math.radians(p.tilt_deg))
         self.t0 = (0.0, -st, ct)                                   # Rx(tilt) z
         self.u = (1.0, 0.0, 0.0)                                   # Rx(tilt) x
@@ -255,22 +255,60 @@ class Canal:
             self.kappa = np.where((self.s >= p.curve_start_mm) & (self.s <= arc_end),
                                   1.0 / p.curve_radius_mm, 0.0)
         self.curved = bool(self.kappa.any())
-        self._last_depth = -1.0
-        self._flush_ref = 0.0      # deepest point since debris was last flushed (mm)
-        self._tau_cut = 0.0        # cutting torque of the last interaction (mNm)
-        self._tau_edges = 0.0      # torque on the flutes' edges: cutting + rubbing (mNm)
-        self._file_key = None
-        self._slip = 0.0           # filtered axial slip rate (mm/s, + deeper)
-        self._last_e = None        # lateral offset of the tip (u, v) last step (mm)
-        self._drag = (p.drag_n_s_per_mm or p.drag_coulomb_n or p.drag_lat_n_s_per_mm
-                      or p.bottom_torque_mnm_per_n)
+        self._drag = bool(p.drag_n_s_per_mm or p.drag_coulomb_n or p.drag_lat_n_s_per_mm
+                          or p.bottom_torque_mnm_per_n)
+        self.st = np.zeros(len(kern.STATE_FIELDS))
+        self.st[kern.S["last_depth"]] = -1.0
         #: whether the file turns (set by the world each step): a still file sticks
-        self.turning = True
-        #: counts the changes of the lumen ``R`` (each :meth:`cut` that removes material; code
-        #: that writes ``R`` itself adds one too): what is derived from the lumen alone
-        #: (completeness, shaping) is the same while it is unchanged, so a caller may keep it
-        #: keyed on this (:meth:`dentibot.sim.world.World.completeness`)
-        self.version = 0
+        self.st[kern.S["turning"]] = 1.0
+        self.cp = _param_array(self)
+        self._out = np.zeros(len(kern.OUT_FIELDS))
+        self._h = np.zeros(n)
+        self._beam = None
+        self._file_key = None
+
+    # the state, by name (the kernels' arrays hold it)
+    def _state(i):          # noqa: N805 (a property factory)
+        return property(lambda self: float(self.st[i]),
+                        lambda self, x: self.st.__setitem__(i, x))
+
+    #: debris in the canal (mm^3)
+    debris_mm3 = _state(kern.S["debris"])
+    _last_depth = _state(kern.S["last_depth"])
+    _feed = _state(kern.S["feed"])
+    _slip = _state(kern.S["slip"])
+    _tau_cut = _state(kern.S["tau_cut"])
+    _tau_edges = _state(kern.S["tau_edges"])
+    del _state
+
+    @property
+    def _entered(self) -> bool:
+        return bool(self.st[kern.S["entered"]])
+
+    @_entered.setter
+    def _entered(self, yes: bool) -> None:
+        self.st[kern.S["entered"]] = 1.0 if yes else 0.0
+
+    @property
+    def turning(self) -> bool:
+        """Whether the file turns (set by the world each step): a still file sticks."""
+        return bool(self.st[kern.S["turning"]])
+
+    @turning.setter
+    def turning(self, yes: bool) -> None:
+        self.st[kern.S["turning"]] = 1.0 if yes else 0.0
+
+    @property
+    def version(self) -> int:
+        """Counts the changes of the lumen ``R`` (each :meth:`cut` that removes material; code
+        that writes ``R`` itself adds one too): what is derived from the lumen alone
+        (completeness, shaping) is the same while it is unchanged, so a caller may keep it
+        keyed on this (:meth:`dentibot.sim.world.World.completeness`)."""
+        return int(self.st[kern.S["version"]])
+
+    @version.setter
+    def version(self, n: int) -> None:
+        self.st[kern.S["version"]] = float(n)
 
     # ------------------------------------------------------------------ pulp
     def red_area_mm2(self) -> np.ndarray:
@@ -318,192 +356,75 @@ class Canal:
     def _prepare(self, f: NiTiFile) -> None:
         # h_i = -(taper/2) s_i - R_i, so that r_f - R = h_i + (d_tip + taper s_tip)/2.
         self._h = -(f.taper / 2.0) * self.s - self.R
+        beam = f.beam
+        step, b0, b1, b2 = beam.integrals
+        self._beam = (b0, b1, b2)
+        cp, P = self.cp, kern.P
+        cp[P["file_tip_mm"]] = f.tip_diameter_mm
+        cp[P["file_taper"]] = f.taper
+        cp[P["file_length_mm"]] = beam.length_mm
+        cp[P["beam_step_mm"]] = step
         self._file_key = f
 
     def interact(self, tip, axis, f: NiTiFile, dt: float) -> Interaction:
-        """Geometry and resistances for the file at ``tip`` (mm) along unit ``axis`` in {P}.
+        """Geometry and resistances for the file at ``tip`` (mm) along unit ``axis`` in {P}
+        (:func:`dentibot.sim.canal_kernels.interact`).
 
         ``axis`` points from the handpiece to the tip (into the tooth). ``dt`` (s) is the
         period, used for the feed rate.
+
+        The file is a straight line in the straight part of the canal: the walls' lateral
+        loads act at the ends of its part in the canal (the orifice and the tip: a straight
+        line in a tapered lumen, bent by end loads, meets the walls there first), each with
+        the wall stiffness of the slices that penetrate in its half. The file is a tapered
+        cantilever clamped at the shank (:meth:`NiTiFile.compliance_mm_n`), on a tooth whose
+        support adds the same compliance to every pair (``support_mm_per_n``); where it
+        touches, the wall's penetration is what the bending leaves (a two-contact linear
+        complementarity problem: :func:`dentibot.sim.canal_walls.wall_loads`). A file crossing
+        the canal's axis (a handpiece tilted from a tilted canal) is pushed one way near the
+        orifice and the other way at the tip: a couple, whose moment about the tip turns the
+        handpiece towards the canal's direction under admittance control (thesis 4.4), and
+        which a single resultant force would lose.
         """
         if self._file_key is not f:
             self._prepare(f)
-        p = self.p
-        t0, u, v = self.t0, self.u, self.v
-        s_tip = tip[0] * t0[0] + tip[1] * t0[1] + tip[2] * t0[2]
-        out = Interaction(depth_mm=s_tip)
-        self._win = (0, 0, None)
-        raw = (s_tip - self._last_depth) / dt if self._last_depth > -1.0 else 0.0
-        self._feed += (raw - self._feed) * (dt / (p.feed_filter_s + dt))
-        feed = self._feed
-        self._last_depth = s_tip
-        self._tau_cut = self._tau_edges = 0.0
-        if self._drag:
-            self._slip += (raw - self._slip) * (dt / (p.drag_filter_s + dt))
-        if s_tip <= 0.0:
-            self.debris_mm3 = 0.0
-            self._entered = False
-            self._flush_ref = 0.0
-            self._last_e = None
-            return out
-        if s_tip > self._flush_ref:
-            self._flush_ref = s_tip
-        else:
-            back = self._flush_ref - s_tip - p.withdraw_deadband_mm
-            if back > 0.0:
-                self.debris_mm3 *= math.exp(-back / p.withdraw_mm)
-                self._flush_ref = s_tip + p.withdraw_deadband_mm
-        eu = tip[0] * u[0] + tip[1] * u[1] + tip[2] * u[2]
-        ev = tip[0] * v[0] + tip[1] * v[1] + tip[2] * v[2]
-        ds = p.slice_mm
-        i_tip = min(int(s_tip / ds), self.n)
-        R_tip = float(self.R[max(i_tip - 1, 0)])
-        if not self._entered:
-            if math.hypot(eu, ev) > R_tip + p.access_margin_mm:
-                out.depth_mm = -1.0  # on the chamber floor, not in the canal
-                out.f_axial_n = p.bottom_n_mm * s_tip
-                return out
-            # Once the tip is in the canal it stays there (it is inside the tooth): a large
-            # offset from the centreline bends the file against the wall instead.
-            self._entered = True
-        at = axis[0] * t0[0] + axis[1] * t0[1] + axis[2] * t0[2]
-        at = max(at, 0.2)
-        au = (axis[0] * u[0] + axis[1] * u[1] + axis[2] * u[2]) / at
-        av = (axis[0] * v[0] + axis[1] * v[1] + axis[2] * v[2]) / at
-        i0 = max(int((s_tip - WORKING_PART_MM) / ds), 0)
-        c = (f.tip_diameter_mm + f.taper * s_tip) / 2.0
-        g = self._h[i0:i_tip] + c                  # r_f - R per slice
-        overlap = np.maximum(g, 0.0)
-        area = float(overlap.sum()) * ds
-        out.engagement_mm2 = area
-        i1 = min(i_tip, self.n_straight)
-        nsum = 0.0
-        if i1 > i0:
-            nsum = self._lateral(out, f, s_tip, au, av, eu, ev, g[: i1 - i0], i0, i1)
-        deb = self.debris_mm3
-        fin = max(feed, 0.0)
-        self._tau_cut = tau_cut = (p.torque_mnm_per_mm2 + p.torque_mnm_s_per_mm3 * fin) * area
-        self._tau_edges = tau_cut
-        out.resist_mnm = (tau_cut + p.torque_mnm_per_mm3 * deb
-                          + p.friction_mu * nsum * f.diameter_mm(out.contact_from_tip_mm) / 2.0)
-        if p.rub_mnm_per_mm:
-            touching = np.count_nonzero(g > -p.rub_clearance_mm)
-            rub = p.rub_mnm_per_mm * ds * touching
-            out.resist_mnm += rub
-            self._tau_edges += rub
-        fa = (p.axial_n_per_mm2 * area + p.axial_n_per_mm3 * deb) * feed / (abs(feed) + 0.05)
-        fa += p.axial_n_s_per_mm3 * feed * area
-        if s_tip > self.bottom_mm:
-            f_bottom = p.bottom_n_mm * (s_tip - self.bottom_mm)
-            fa += f_bottom
-            out.resist_mnm += p.bottom_torque_mnm_per_n * f_bottom
-        if self._drag:
-            fa += self._drag_forces(out, eu, ev, dt)
-        out.f_axial_n = fa
-        if self.curved:
-            strain = self.kappa[i0:i_tip] * (g + self.R[i0:i_tip])  # r_f / rho = d / (2 rho)
-            out.max_strain = float(strain.max()) if strain.size else 0.0
-        self._win = (i0, i_tip, overlap)
-        return out
-
-    def _lateral(self, out: Interaction, f: NiTiFile, s_tip: float, au: float, av: float,
-                 eu: float, ev: float, g: np.ndarray, i0: int, i1: int) -> float:
-        """The walls' lateral loads on the straight part of the file (slices ``i0:i1``), set
-        in ``out.f_lat``, ``out.m_lat`` and ``out.contact_from_tip_mm``; returns the sum of
-        their magnitudes (N, the normal load the wall friction acts with).
-
-        The undeformed file is a straight line from the handpiece's clamp: its offset ``e``
-        from the centreline is linear in depth. Per slice the far-side penetration minus the
-        near-side one (``g`` is the file's radius minus the lumen's) would push a rigid file
-        back with the wall stiffness. The file touches the walls in two places at most, at the
-        ends of its part in the canal (the orifice and the tip: a straight line in a tapered
-        lumen, bent by end loads, meets the walls there first), each with the wall stiffness
-        of the slices that penetrate in its half. The file is a tapered cantilever clamped at the shank
-        (:meth:`NiTiFile.compliance_mm_n`), on a tooth whose support adds the same compliance
-        to every pair (``support_mm_per_n``): the loads ``lambda_j`` (along the inward normal
-        ``-n_j``) bend it, and where it touches the wall's penetration is what the bending
-        leaves, ``lambda_j / k_j = pen_j - sum_k c(j, k) (n_j . n_k) lambda_k``, with
-        ``lambda >= 0`` and no penetration where there is no load (a two-contact linear
-        complementarity problem, solved by active sets: a contact the bending presses into
-        the wall joins, one that would pull leaves).
-
-        A file crossing the canal's axis (a handpiece tilted from a tilted canal) is pushed one
-        way near the orifice and the other way at the tip: a couple, whose moment about the tip
-        turns the handpiece towards the canal's direction under admittance control (thesis
-        4.4), and which a single resultant force would lose."""
-        p = self.p
-        sup = p.support_mm_per_n                         # the tooth moves as a body on it
-        sup_y = sup if p.support_y_mm_per_n is None else p.support_y_mm_per_n
-        beam = f.beam
-        step, t0, t1, t2 = beam.integrals
-        # an anisotropic support: its part beyond the x compliance acts along y only
-        total, fu, fv, mu, mv, d = wall_loads(
-            self.s[i0:i1], g, au, av, eu, ev, s_tip, p.wall_n_mm_per_mm * p.slice_mm, sup,
-            sup_y - sup, beam.length_mm, step, t0, t1, t2)
-        if total <= 0.0:
-            return 0.0
-        u, v = self.u, self.v
-        out.f_lat = (fu * u[0] + fv * v[0], fu * u[1] + fv * v[1], fu * u[2] + fv * v[2])
-        out.m_lat = (mu * u[0] + mv * v[0], mu * u[1] + mv * v[1], mu * u[2] + mv * v[2])
-        out.contact_from_tip_mm = d
-        return total
-
-    def _drag_forces(self, out: Interaction, eu: float, ev: float, dt: float) -> float:
-        """Canal drag (see the drag fields of :class:`CanalParams`): adds the lateral damping
-        to ``out.f_lat`` and returns the axial drag (N, + pushes the file out)."""
-        p = self.p
-        u = self._slip
-        fc = p.drag_coulomb_n * (1.0 if self.turning else p.drag_static_factor)
-        fa = p.drag_n_s_per_mm * u + fc * math.tanh(u / p.drag_v0_mm_s)
-        last, self._last_e = self._last_e, (eu, ev)
-        if p.drag_lat_n_s_per_mm and last is not None and any(out.f_lat):
-            c = p.drag_lat_n_s_per_mm / dt
-            du, dv = (eu - last[0]) * c, (ev - last[1]) * c
-            uu, vv = self.u, self.v
-            fl = out.f_lat
-            dl = (du * uu[0] + dv * vv[0], du * uu[1] + dv * vv[1], du * uu[2] + dv * vv[2])
-            out.f_lat = (fl[0] - dl[0], fl[1] - dl[1], fl[2] - dl[2])
-            d, ml = out.contact_from_tip_mm, out.m_lat    # the damping acts at the contact
-            out.m_lat = (ml[0] - d * dl[0], ml[1] - d * dl[1], ml[2] - d * dl[2])
-        return fa
+        b0, b1, b2 = self._beam
+        kern.interact(self.st, self.cp, self.R, self._h, self.s, self.kappa, b0, b1, b2,
+                      tip[0], tip[1], tip[2], axis[0], axis[1], axis[2], dt, self._out)
+        o = self._out.tolist()
+        return Interaction(o[0], (o[1], o[2], o[3]), o[4], (o[5], o[6], o[7]), o[8], o[9],
+                           o[10], o[11])
 
     def cut(self, revolutions: float) -> float:
         """Apply ``revolutions`` of file rotation (signed, + cutting) after ``interact``.
 
         Forward rotation removes ``tau_c * 2 pi revolutions / u_s`` (mm^3) from the engaged
         slices in proportion to their overlap, at most the overlap itself. Returns the removed
-        volume (mm^3).
+        volume (mm^3) (:func:`dentibot.sim.canal_kernels.cut`).
         """
-        p = self.p
-        if revolutions < 0.0:
-            if self.debris_mm3:
-                self.debris_mm3 *= math.exp(p.c_rev_per_rev * revolutions)
-            return 0.0
-        if revolutions == 0.0 or self._last_depth <= 0.0:
-            return 0.0
-        i0, i1, overlap = self._win
-        if i1 <= i0:
-            return 0.0
-        r = self.R[i0:i1]
-        # volume per unit of overlap fraction: 2 pi ds sum(R_i overlap_i) (thin annuli)
-        full = 2.0 * math.pi * p.slice_mm * float(np.dot(r, overlap))
-        if full <= 0.0:
-            return 0.0
-        want = self._tau_cut * 2.0 * math.pi * revolutions / p.cutting_energy_mj_mm3
-        q = min(want / full, 1.0)
-        dr = q * overlap
-        r += dr
-        self._h[i0:i1] -= dr
-        self.version += 1
-        dv = q * full
-        self.debris_mm3 = self.debris_mm3 * math.exp(-p.c_fwd_per_rev * revolutions) + dv
-        return dv
+        return kern.cut(self.st, self.cp, self.R, self._h, float(revolutions))
 
     def screw_in_n(self, revolutions: float) -> float:
         """Axial pull (N, into the canal) of the engaged flutes for this step's rotation:
         ``screw`` times the torque on their helical edges (cutting and rubbing, not debris)
-        turning forward, ``-reverse_factor`` times that turning back."""
-        if not revolutions or not self._tau_edges:
-            return 0.0
-        pull = self.p.screw_n_per_mnm * self._tau_edges
-        return pull if revolutions > 0.0 else -self.p.reverse_factor * pull
+        turning forward, ``-reverse_factor`` times that turning back
+        (:func:`dentibot.sim.canal_kernels.screw_in_n`)."""
+        return kern.screw_in_n(self.st, self.cp, float(revolutions))
+
+
+def _param_array(canal: Canal) -> np.ndarray:
+    """The canal's constants as :data:`dentibot.sim.canal_kernels.PARAM_FIELDS` lists them
+    (the file's are filled in when a file enters: ``Canal._prepare``)."""
+    p = canal.p
+    sup_y = p.support_mm_per_n if p.support_y_mm_per_n is None else p.support_y_mm_per_n
+    derived = {
+        "n": canal.n, "n_straight": canal.n_straight, "curved": canal.curved,
+        "bottom_mm": canal.bottom_mm, "drag": canal._drag,
+        **{f"t0{a}": x for a, x in zip("xyz", canal.t0)},
+        **{f"u{a}": x for a, x in zip("xyz", canal.u)},
+        **{f"v{a}": x for a, x in zip("xyz", canal.v)},
+        "support_extra_y_mm_per_n": sup_y - p.support_mm_per_n,
+        "file_tip_mm": 0.0, "file_taper": 0.0, "file_length_mm": 0.0, "beam_step_mm": 0.0,
+    }
+    return np.array([float(derived[k] if k in derived else getattr(p, k))
+                     for k in kern.PARAM_FIELDS])
