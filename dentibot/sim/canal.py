@@ -263,6 +263,7 @@ class Canal:
         self.st[kern.S["turning"]] = 1.0
         self.cp = _param_array(self)
         self._out = np.zeros(len(kern.OUT_FIELDS))
+        self._out[kern.O["depth_mm"]] = -1.0          # no file in the canal yet
         self._h = np.zeros(n)
         self._beam = None
         self._file_key = None
@@ -391,9 +392,7 @@ class Canal:
         b0, b1, b2 = self._beam
         kern.interact(self.st, self.cp, self.R, self._h, self.s, self.kappa, b0, b1, b2,
                       tip[0], tip[1], tip[2], axis[0], axis[1], axis[2], dt, self._out)
-        o = self._out.tolist()
-        return Interaction(o[0], (o[1], o[2], o[3]), o[4], (o[5], o[6], o[7]), o[8], o[9],
-                           o[10], o[11])
+        return interaction_of(self)
 
     def cut(self, revolutions: float) -> float:
         """Apply ``revolutions`` of file rotation (signed, + cutting) after ``interact``.
@@ -410,6 +409,13 @@ class Canal:
         turning forward, ``-reverse_factor`` times that turning back
         (:func:`dentibot.sim.canal_kernels.screw_in_n`)."""
         return kern.screw_in_n(self.st, self.cp, float(revolutions))
+
+
+def interaction_of(canal: Canal) -> Interaction:
+    """The canal's last outcome (the kernels' ``out`` array) as an :class:`Interaction`."""
+    o = canal._out.tolist()
+    return Interaction(o[0], (o[1], o[2], o[3]), o[4], (o[5], o[6], o[7]), o[8], o[9], o[10],
+                       o[11])
 
 
 def _param_array(canal: Canal) -> np.ndarray:

@@ -86,6 +86,9 @@ O = _index(OUT_FIELDS)
 (_O_DEPTH, _O_FX, _O_FY, _O_FZ, _O_CONTACT, _O_MX, _O_MY, _O_MZ, _O_AXIAL, _O_RESIST,
  _O_ENGAGE, _O_STRAIN) = range(len(OUT_FIELDS))
 
+#: Indices other kernels use (compiled constants).
+P_DRAG, P_REVERSE, S_TURNING = _DRAG, _REVERSE, _TURNING
+
 
 @njit(cache=True)
 def interact(st: np.ndarray, cp: np.ndarray, R: np.ndarray, h: np.ndarray, s: np.ndarray,

@@ -18,7 +18,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from dentibot.io.interfaces import WRENCH_SATURATED
+from dentibot.sim import ftsensor_kernels as kern
 
+#: Rows of noise drawn at a time (the seeded stream, block by block).
+NOISE_BLOCK = 4096
 #: Standard gravity (m/s^2).
 G = 9.80665
 
@@ -47,6 +50,9 @@ class FTSensorParams:
 
 
 class FTSensorModel:
+    """The sensor (its state in the arrays of :mod:`dentibot.sim.ftsensor_kernels`, whose
+    kernels :meth:`sample` and :meth:`true_wrench` call)."""
+
     def __init__(self, params: FTSensorParams, rng: np.random.Generator) -> None:
         self.p = p = params
         self.rng = rng
@@ -54,83 +60,87 @@ class FTSensorModel:
         self.f0 = tuple(float(x) * p.offset_sigma_n for x in off[:3])
         self.tau0 = tuple(float(x) * p.offset_sigma_nm for x in off[3:])
         th = math.radians(p.mount_angle_deg)
-        self._c, self._s = math.cos(th), math.sin(th)
         self._sigma = np.array(list(p.noise_n) + [p.noise_nm] * 3)
-        self._block()
-        self.tare = (0.0,) * 6
-        self.last = (0.0,) * 6        # after tare
-        self.raw = (0.0,) * 6         # before tare (quantised)
-        self.status = 0
-        self._res = tuple(p.res_n) + (p.res_nm,) * 3
-        self._rng = tuple(p.range_n) + (p.range_nm,) * 3
-        self._inv_res = tuple(1.0 / r for r in self._res)
-        self._off = self.f0 + self.tau0
-        self._r_m = tuple(x * 1e-3 for x in p.centroid_mm)
+        self.noise = self._draw()
+        self.ss = np.zeros(len(kern.STATE_FIELDS))
+        res = (*p.res_n, *(p.res_nm,) * 3)
+        consts = {
+            "weight_n": p.mass_kg * G, "cos_mount": math.cos(th), "sin_mount": math.sin(th),
+            "rx_m": p.centroid_mm[0] * 1e-3, "ry_m": p.centroid_mm[1] * 1e-3,
+            "rz_m": p.centroid_mm[2] * 1e-3, "offset_mm": p.offset_mm,
+            "saturated": WRENCH_SATURATED,
+            **{f"offset{i}": x for i, x in enumerate(self.f0 + self.tau0)},
+            **{f"res{i}": x for i, x in enumerate(res)},
+            **{f"inv_res{i}": 1.0 / x for i, x in enumerate(res)},
+            **{f"range{i}": x for i, x in enumerate((*p.range_n, *(p.range_nm,) * 3))},
+        }
+        self.sp = np.array([float(consts[k]) for k in kern.PARAM_FIELDS])
+        self._F = np.zeros((4, 3))
 
-    def _block(self) -> None:
-        self._noise = (self.rng.standard_normal((4096, 6)) * self._sigma).tolist()
-        self._k = 0
+    def _draw(self) -> np.ndarray:
+        return self.rng.standard_normal((NOISE_BLOCK, 6)) * self._sigma
+
+    def refill(self) -> None:
+        """The next block of the seeded noise stream, when this one is used up (before a
+        sample)."""
+        if self.ss[kern.S["k"]] >= NOISE_BLOCK:
+            self.noise = self._draw()
+            self.ss[kern.S["k"]] = 0.0
+
+    @property
+    def last(self) -> tuple:
+        """The last reading after tare (N, N*m, {S})."""
+        return tuple(self.ss[0:6].tolist())
+
+    @property
+    def raw(self) -> tuple:
+        """The last reading before tare (quantised)."""
+        return tuple(self.ss[6:12].tolist())
+
+    @property
+    def tare(self) -> tuple:
+        """What :meth:`bias` subtracts from every reading."""
+        return tuple(self.ss[12:18].tolist())
+
+    @property
+    def status(self) -> int:
+        """The last reading's status word (``WRENCH_SATURATED`` when saturated)."""
+        return int(self.ss[kern.S["status"]])
 
     def origin(self, R06, p06) -> tuple[float, float, float]:
         """{S} origin in {0} (mm) given the flange rotation rows R06 and position p06."""
         d = self.p.offset_mm
         return (p06[0] + R06[0][2] * d, p06[1] + R06[1][2] * d, p06[2] + R06[2][2] * d)
 
+    def _frame(self, R06) -> np.ndarray:
+        F = self._F
+        F[:3] = np.asarray(R06, dtype=float).T
+        return F
+
     def true_wrench(self, R06, f0_ext, tau0_ext) -> tuple:
         """Noise-free reading without offsets: gravity + external, in {S} (N, N*m).
 
-        ``f0_ext`` (N) and ``tau0_ext`` (N*m, about the {S} origin) are in {0}.
-        """
-        p = self.p
-        fz = -p.mass_kg * G
-        fx0, fy0, fz0 = f0_ext[0], f0_ext[1], f0_ext[2] + fz
-        # into {6}: R06^T v
-        r0, r1, r2 = R06
-        f6 = (r0[0] * fx0 + r1[0] * fy0 + r2[0] * fz0, r0[1] * fx0 + r1[1] * fy0 + r2[1] * fz0,
-              r0[2] * fx0 + r1[2] * fy0 + r2[2] * fz0)
-        a, b, c_ = tau0_ext
-        t6 = (r0[0] * a + r1[0] * b + r2[0] * c_, r0[1] * a + r1[1] * b + r2[1] * c_,
-              r0[2] * a + r1[2] * b + r2[2] * c_)
-        c, s = self._c, self._s
-        fx, fy, fz_ = c * f6[0] + s * f6[1], -s * f6[0] + c * f6[1], f6[2]
-        tx, ty, tz = c * t6[0] + s * t6[1], -s * t6[0] + c * t6[1], t6[2]
-        # gravity torque r x f_g, with f_g in {S}
-        g6z = fz  # gravity alone in {6}: R06^T (0,0,fz)
-        gx6, gy6, gz6 = R06[2][0] * g6z, R06[2][1] * g6z, R06[2][2] * g6z
-        gx, gy = c * gx6 + s * gy6, -s * gx6 + c * gy6
-        rx, ry, rz = self._r_m
-        tx += ry * gz6 - rz * gy
-        ty += rz * gx - rx * gz6
-        tz += rx * gy - ry * gx
-        return (fx, fy, fz_, tx, ty, tz)
+        ``f0_ext`` (N) and ``tau0_ext`` (N*m, about the {S} origin) are in {0}; ``R06`` the
+        flange's rotation (rows)."""
+        out = np.empty(6)
+        kern.true_wrench(self.sp, self._frame(R06), float(f0_ext[0]), float(f0_ext[1]),
+                         float(f0_ext[2]), float(tau0_ext[0]), float(tau0_ext[1]),
+                         float(tau0_ext[2]), out)
+        return tuple(out.tolist())
 
     def sample(self, R06, f0_ext, tau0_ext) -> tuple:
         """One reading (after tare), updating ``last``, ``raw`` and ``status``."""
-        w = self.true_wrench(R06, f0_ext, tau0_ext)
-        k = self._k
-        if k == 4096:
-            self._block()
-            k = 0
-        self._k = k + 1
-        n = self._noise[k]
-        off = self._off
-        x = [a + b + c for a, b, c in zip(w, off, n)]
-        lim = self._rng
-        status = 0
-        for i in range(6):
-            if x[i] >= lim[i]:
-                x[i], status = lim[i], WRENCH_SATURATED
-            elif x[i] <= -lim[i]:
-                x[i], status = -lim[i], WRENCH_SATURATED
-        raw = [round(a * b) * c for a, b, c in zip(x, self._inv_res, self._res)]
-        self.raw = raw = tuple(raw)
-        t = self.tare
-        self.last = last = (raw[0] - t[0], raw[1] - t[1], raw[2] - t[2],
-                            raw[3] - t[3], raw[4] - t[4], raw[5] - t[5])
-        self.status = status
-        return last
+        self.sample_frame(self._frame(R06), f0_ext, tau0_ext)
+        return self.last
+
+    def sample_frame(self, F: np.ndarray, f0_ext, tau0_ext) -> None:
+        """:meth:`sample` with the flange's pose as the kinematics kernels give it (``F``,
+        shape (4, 3): the rotation's columns, then the origin)."""
+        self.refill()
+        kern.sample(self.ss, self.sp, self.noise, F, f0_ext[0], f0_ext[1], f0_ext[2],
+                    tau0_ext[0], tau0_ext[1], tau0_ext[2])
 
     def bias(self) -> None:
         """Software tare: the current raw reading reads zero from now on."""
-        self.tare = self.raw
-        self.last = (0.0,) * 6
+        self.ss[12:18] = self.ss[6:12]
+        self.ss[0:6] = 0.0

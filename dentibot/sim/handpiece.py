@@ -29,7 +29,10 @@ from dentibot.control.feedrate import (
     file_torque_from_current,
 )
 from dentibot.errors import ConfigError
+from dentibot.sim import handpiece_kernels as kern
 
+#: Samples of current noise drawn at a time (the seeded stream, block by block).
+NOISE_BLOCK = 4096
 #: Largest file speed (rpm) the handpiece accepts (thesis 5.1).
 MAX_FILE_RPM = 200.0
 
@@ -72,28 +75,55 @@ class HandpieceParams:
 
 
 class HandpieceModel:
+    """The handpiece's motor and drive (its state in the arrays of
+    :mod:`dentibot.sim.handpiece_kernels`, whose kernel :meth:`step` calls)."""
+
     def __init__(self, params: HandpieceParams, rng: np.random.Generator) -> None:
         self.p = params
         self.rng = rng
-        self.omega_rpm = 0.0
-        self.pos_deg = 0.0
-        self.cmd_rpm = 0.0
-        self.mode = "vel"             # vel | pos
-        self.target_deg = 0.0
+        self.hs = np.zeros(len(kern.STATE_FIELDS))
         self.enabled = True
-        self.current_a = 0.0
-        self.torque_mnm = 0.0          # signed torque the motor applies to the file
-        self.stalled = False
         self.fault: str | None = None
         #: the drive's output current limit (A): the motor cannot give the file more torque
         self.current_limit_a = params.current_limit_a
-        self._noise = rng.standard_normal(4096) * params.current_noise_a
-        self._k = 0
-        self._t = 0.0
-        self._wander_phase = 0.0
+        self._move_rpm = params.move_rpm
+        self.noise = rng.standard_normal(NOISE_BLOCK) * params.current_noise_a
+        wander_phase = 0.0
         if params.current_wander_a:
-            self._wander_phase = float(np.random.default_rng(rng.integers(1 << 30)).uniform(
+            wander_phase = float(np.random.default_rng(rng.integers(1 << 30)).uniform(
                 0.0, 2.0 * math.pi))
+        consts = {"torque_per_amp_mnm": params.torque_per_amp_mnm,
+                  "wander_phase": wander_phase}
+        self.hp = np.array([float(consts[k] if k in consts else getattr(params, k))
+                            for k in kern.PARAM_FIELDS])
+
+    def _field(i, doc):          # noqa: N805 (a property factory)
+        return property(lambda self: float(self.hs[i]),
+                        lambda self, x: self.hs.__setitem__(i, x), doc=doc)
+
+    omega_rpm = _field(kern.S["omega_rpm"], "File speed (rpm).")
+    pos_deg = _field(kern.S["pos_deg"], "File position (deg).")
+    cmd_rpm = _field(kern.S["cmd_rpm"], "Commanded file speed (rpm).")
+    target_deg = _field(kern.S["target_deg"], "Target of a position move (deg).")
+    current_a = _field(kern.S["current_a"], "The motor current reading (A).")
+    torque_mnm = _field(kern.S["torque_mnm"], "Signed torque the motor applies to the file.")
+    current_limit_a = _field(kern.S["current_limit_a"], "The drive's output current limit (A).")
+    _move_rpm = _field(kern.S["move_rpm"], "Speed of a position move (rpm).")
+    del _field
+
+    @property
+    def mode(self) -> str:
+        """``vel`` (speed mode) or ``pos`` (a position move)."""
+        return "pos" if self.hs[kern.S["pos_mode"]] else "vel"
+
+    @mode.setter
+    def mode(self, mode: str) -> None:
+        self.hs[kern.S["pos_mode"]] = 1.0 if mode == "pos" else 0.0
+
+    @property
+    def stalled(self) -> bool:
+        """The load exceeds the torque of the current limit."""
+        return bool(self.hs[kern.S["stalled"]])
 
     def set_velocity(self, rpm: float) -> None:
         rpm = float(rpm)
@@ -126,49 +156,17 @@ class HandpieceModel:
         return self.mode == "pos" and abs(self.target_deg - self.pos_deg) < 0.5 \
             and abs(self.omega_rpm) < 1.0
 
+    def refill(self) -> None:
+        """The next block of the seeded noise stream, when this one is used up (before a
+        step)."""
+        if self.hs[kern.S["k"]] >= NOISE_BLOCK:
+            self.noise = self.rng.standard_normal(NOISE_BLOCK) * self.p.current_noise_a
+            self.hs[kern.S["k"]] = 0.0
+
     def step(self, ts: float, resist_fwd_mnm: float, resist_rev_mnm: float) -> float:
         """Advance one period against a load resisting forward (positive) rotation with
         ``resist_fwd_mnm`` and reverse rotation with ``resist_rev_mnm`` (both >= 0, mNm at the
-        file). Returns the file rotation this period (deg)."""
-        p = self.p
-        if self.mode == "pos":
-            err = self.target_deg - self.pos_deg
-            ref = err / (6.0 * 4.0 * p.tau_s)  # P loop, deg -> rpm (1 rpm = 6 deg/s)
-            m = self._move_rpm
-            ref = min(max(ref, -m), m)
-        else:
-            ref = self.cmd_rpm
-        w = self.omega_rpm
-        direction = w if abs(w) > 1e-6 else ref
-        sgn = (direction > 0.0) - (direction < 0.0)
-        resist_mnm = resist_fwd_mnm if sgn > 0 else resist_rev_mnm
-        load = resist_mnm * sgn
-        # the current limit covers the no-load current too (see the current model above)
-        t_max = max(0.0, self.current_limit_a - p.friction_current_a) * p.torque_per_amp_mnm
-        a = -math.expm1(-ts / p.tau_s)   # exact discretisation of the first-order loop
-        if resist_mnm > t_max and sgn != 0:
-            self.stalled = True
-            w += (0.0 - w) * a
-            self.torque_mnm = t_max * sgn if abs(w) > 1e-3 or ref else 0.0
-        else:
-            self.stalled = False
-            w += (ref - w) * a
-            self.torque_mnm = load if (abs(w) > 1e-3 or ref) else 0.0
-        if abs(w) < 1e-6:
-            w = 0.0
-        self.omega_rpm = w
-        dpos = w * 6.0 * ts
-        self.pos_deg += dpos
-        k = self._k
-        if k == 4096:  # next block of the seeded noise stream
-            self._noise = self.rng.standard_normal(4096) * p.current_noise_a
-            k = 0
-        self._k = k + 1
-        fsgn = (w > 0.5) - (w < -0.5)
-        self.current_a = (self.torque_mnm / p.torque_per_amp_mnm + p.friction_current_a * fsgn
-                          + float(self._noise[k]))
-        if p.current_offset_a or p.current_wander_a:
-            self._t += ts
-            self.current_a += p.current_offset_a + p.current_wander_a * math.sin(
-                2.0 * math.pi * self._t / p.current_wander_period_s + self._wander_phase)
-        return dpos
+        file). Returns the file rotation this period (deg)
+        (:func:`dentibot.sim.handpiece_kernels.step`)."""
+        self.refill()
+        return kern.step(self.hs, self.hp, self.noise, ts, resist_fwd_mnm, resist_rev_mnm)

@@ -18,10 +18,11 @@ import numpy as np
 
 from dentibot.control.kinematics import Meca500
 from dentibot.sim.arm import ArmParams, SimArmModel
-from dentibot.sim.canal import Canal, CanalParams, Interaction
+from dentibot.sim.canal import Canal, CanalParams, Interaction, interaction_of
 from dentibot.sim.ftsensor import FTSensorModel, FTSensorParams
 from dentibot.sim.handpiece import HandpieceModel, HandpieceParams
-from dentibot.sim.nitifile import FileFractured, NiTiFile
+from dentibot.sim import world_kernels as wk
+from dentibot.sim.nitifile import FATIGUE_B, FATIGUE_C, FileFractured, NiTiFile
 from dentibot.sim.patient import (
     PATIENT_MOTIONS,
     HeadMotion,
@@ -38,6 +39,10 @@ TS = 0.002
 TOOL_LENGTH_MM = 90.0
 # assumption: a home pose pointing the file straight down, well away from singularities.
 HOME_Q_DEG = (0.0, -10.0, 20.0, 0.0, 80.0, 0.0)
+
+
+_ORIGIN, _FR_TORQUE, _FR_DEPTH = (wk.S["origin_x"], wk.S["fracture_torque"],
+                                  wk.S["fracture_depth"])
 
 
 def _tz(d: float) -> np.ndarray:
@@ -78,11 +83,16 @@ class World:
         s_sensor, s_motor, s_patient = root.spawn(3)
         self.kin = Meca500(tool=cfg.tool)
         self.arm = SimArmModel(self.kin, cfg.q0_deg, cfg.arm)
-        self._fk = self.kin.flange_floats
         self.sensor = FTSensorModel(cfg.sensor, np.random.default_rng(s_sensor))
         self.handpiece = HandpieceModel(cfg.handpiece, np.random.default_rng(s_motor))
-        self.file = cfg.file
         self.canal = Canal(cfg.canal)
+        #: the world's state and constants (:mod:`dentibot.sim.world_kernels`)
+        self.ws = np.zeros(len(wk.STATE_FIELDS))
+        self.wp = np.zeros(len(wk.PARAM_FIELDS))
+        self.wp[wk.P["tool_px"]:wk.P["tool_px"] + 3] = cfg.tool[:3, 3]
+        self.wp[wk.P["tool_zx"]:wk.P["tool_zx"] + 3] = cfg.tool[:3, 2]
+        self.wp[wk.P["fatigue_c"]], self.wp[wk.P["fatigue_b"]] = FATIGUE_C, FATIGUE_B
+        self.file = cfg.file
         m = cfg.motion
         if m == "static":
             self.motion: MotionProfile = StaticPose()
@@ -103,13 +113,9 @@ class World:
         self.hand_force_0 = (0.0, 0.0, 0.0)
         self.hand_point_6_mm = (0.0, 0.0, TOOL_LENGTH_MM - 50.0)
         self.fractured: FileFractured | None = None
-        self.fatigue_damage = 0.0
-        self.interaction = Interaction()
-        self.contact_force_0 = (0.0, 0.0, 0.0)   # net force of the canal on the file, {0}
+        self._interaction: Interaction | None = None
         self._completeness_key: tuple | None = None
         self._completeness = 0.0
-        self._tool_p = tuple(float(x) for x in cfg.tool[:3, 3])
-        self._tool_z = tuple(float(x) for x in cfg.tool[:3, 2])
         self._pose_q = None
         self._update_pose()
         if cfg.phantom_pose is None:
@@ -126,20 +132,79 @@ class World:
                                          *self.canal_axis_0())
         self._sense()
 
+    # ------------------------------------------------------------------ state
+    def _vector(name: str, doc: str):     # noqa: N805 (a property factory)
+        i = wk.S[name]
+
+        def get(self) -> tuple[float, float, float]:
+            return tuple(self.ws[i:i + 3].tolist())
+
+        def put(self, v) -> None:
+            self.ws[i:i + 3] = v
+
+        return property(get, put, doc=doc)
+
+    tip_0 = _vector("tip_x", "The file's tip in {0} (mm).")
+    axis_0 = _vector("axis_x", "The file's axis in {0} (unit, towards the tip).")
+    contact_force_0 = _vector("contact_x", "The canal's net force on the file, {0} (N).")
+    external_tau_0 = _vector("ext_tau_x", "The external torque about the sensor's origin, "
+                             "{0} (N*m).")
+    hand_force_0 = _vector("hand_x", "The operator's hand on the handpiece, {0} (N).")
+    hand_point_6_mm = _vector("grip_x", "Where the hand holds it, in the flange frame (mm).")
+    del _vector
+
+    @property
+    def fatigue_damage(self) -> float:
+        """Miner's sum of the file's bending cycles (1: it breaks)."""
+        return float(self.ws[wk.S["fatigue_damage"]])
+
+    @property
+    def file(self) -> NiTiFile:
+        """The file in the handpiece."""
+        return self._file
+
+    @file.setter
+    def file(self, f: NiTiFile) -> None:
+        self._file = f
+        self.wp[wk.P["torsional_strength_mnm"]] = f.torsional_strength_mnm
+
+    @property
+    def interaction(self) -> Interaction:
+        """What the canal did to the file in the last step (phantom frame {P})."""
+        it = self._interaction
+        if it is None:
+            it = self._interaction = interaction_of(self.canal)
+        return it
+
+    @property
+    def _RP(self) -> list:
+        """0R_P now (rows)."""
+        return self._rp
+
+    @_RP.setter
+    def _RP(self, rows) -> None:
+        self._rp = rows
+        i = wk.S["rp00"]
+        self.ws[i:i + 9] = (*rows[0], *rows[1], *rows[2])
+
+    @property
+    def _R06(self) -> tuple:
+        """0R_6 now, as three row tuples."""
+        c0, c1, c2, _ = self._F.tolist()
+        return (c0[0], c1[0], c2[0]), (c0[1], c1[1], c2[1]), (c0[2], c1[2], c2[2])
+
+    @property
+    def _p06(self) -> tuple:
+        """The flange's origin in {0} now (mm)."""
+        return tuple(self._F[3].tolist())
+
     # ------------------------------------------------------------------ geometry
     def _update_pose(self) -> None:
         q = self.arm.q
         if q == self._pose_q:
             return
-        self._R06, self._p06 = R, p = self._fk(q)
-        a, b = self._tool_p, self._tool_z
-        r0, r1, r2 = R
-        self.tip_0 = (p[0] + r0[0] * a[0] + r0[1] * a[1] + r0[2] * a[2],
-                      p[1] + r1[0] * a[0] + r1[1] * a[1] + r1[2] * a[2],
-                      p[2] + r2[0] * a[0] + r2[1] * a[1] + r2[2] * a[2])
-        self.axis_0 = (r0[0] * b[0] + r0[1] * b[1] + r0[2] * b[2],
-                       r1[0] * b[0] + r1[1] * b[1] + r1[2] * b[2],
-                       r2[0] * b[0] + r2[1] * b[1] + r2[2] * b[2])
+        self._F = self.kin._chain(q)[5]
+        wk.pose(self.ws, self.wp, self._F)
         self._pose_q = list(q)
 
     def phantom_origin_0(self) -> tuple[float, float, float]:
@@ -176,7 +241,9 @@ class World:
         if self.fractured is None:
             self.fractured = FileFractured(cause, self.t, abs(self.handpiece.torque_mnm),
                                            self.interaction.depth_mm)
-            self.interaction = Interaction()
+            self.ws[wk.S["fractured"]] = 1.0
+            wk.clear_interaction(self.canal._out)
+            self._interaction = None
 
     @property
     def phantom_rotation(self) -> np.ndarray:
@@ -197,7 +264,9 @@ class World:
 
     # ------------------------------------------------------------------ stepping
     def step(self) -> None:
-        """Advance the world by exactly one period ``ts``."""
+        """Advance the world by exactly one period ``ts``: the patient and the arm here, then
+        the file in the canal, the handpiece, cutting, fatigue, fracture and the sensor's
+        reading in one compiled call (:func:`dentibot.sim.world_kernels.contact_step`)."""
         ts = self.ts
         self.t = t = (self.steps + 1) * ts
         self.steps += 1
@@ -207,96 +276,34 @@ class World:
         arm.step(t, ts)
         if arm.moving:
             self._update_pose()
-        hp = self.handpiece
+        ws, canal, hp, sensor = self.ws, self.canal, self.handpiece, self.sensor
         if self.fractured is None:
             off = self.motion.offset_mm(t)
-            pl, pP, R = self.platform_mm, self._pP, self._RP
-            tip, ax = self.tip_0, self.axis_0
-            d0 = tip[0] - pP[0] - off[0] - pl[0]
-            d1 = tip[1] - pP[1] - off[1] - pl[1]
-            d2 = tip[2] - pP[2] - off[2] - pl[2]
-            r0, r1, r2 = R
-            tip_p = (r0[0] * d0 + r1[0] * d1 + r2[0] * d2, r0[1] * d0 + r1[1] * d1 + r2[1] * d2,
-                     r0[2] * d0 + r1[2] * d1 + r2[2] * d2)
-            axis_p = (r0[0] * ax[0] + r1[0] * ax[1] + r2[0] * ax[2],
-                      r0[1] * ax[0] + r1[1] * ax[1] + r2[1] * ax[2],
-                      r0[2] * ax[0] + r1[2] * ax[1] + r2[2] * ax[2])
-            canal = self.canal
-            if canal._drag:
-                canal.turning = hp.omega_rpm != 0.0
-            it = canal.interact(tip_p, axis_p, self.file, ts)
-            self.interaction = it
-            resist = it.resist_mnm
-            dpos = hp.step(ts, resist, resist * self.canal.p.reverse_factor)
-            rev = dpos / 360.0
-            if it.engagement_mm2 > 0.0 or rev < 0.0:
-                self.canal.cut(rev)
-                it.f_axial_n -= self.canal.screw_in_n(rev)
-            if it.max_strain > 0.0 and rev:
-                self.fatigue_damage += abs(rev) / self.file.cycles_to_failure(it.max_strain)
-            torque = hp.torque_mnm
-            if abs(torque) > self.file.torsional_strength_mnm:
-                self.fractured = FileFractured("torsion", t, abs(torque), it.depth_mm)
-            elif self.fatigue_damage >= 1.0:
-                self.fractured = FileFractured("fatigue", t, abs(torque), it.depth_mm)
-            if self.fractured is not None:
-                self.interaction = it = Interaction()
-        else:
-            it = self.interaction
-            hp.step(ts, 0.0, 0.0)
-        self._sense()
+            pl, pP = self.platform_mm, self._pP
+            i = _ORIGIN
+            ws[i] = pP[0] + off[0] + pl[0]
+            ws[i + 1] = pP[1] + off[1] + pl[1]
+            ws[i + 2] = pP[2] + off[2] + pl[2]
+            if canal._file_key is not self._file:
+                canal._prepare(self._file)
+        hp.refill()
+        sensor.refill()
+        b0, b1, b2 = canal._beam
+        code = wk.contact_step(ws, self.wp, self._F, canal.st, canal.cp, canal.R, canal._h,
+                               canal.s, canal.kappa, b0, b1, b2, canal._out, hp.hs, hp.hp,
+                               hp.noise, sensor.ss, sensor.sp, sensor.noise, ts)
+        self._interaction = None
+        if code:
+            self.fractured = FileFractured(wk.FRACTURE_CAUSES[code], t,
+                                           float(ws[_FR_TORQUE]), float(ws[_FR_DEPTH]))
 
     def _sense(self) -> None:
-        it = self.interaction
-        if self.fractured is None and (it.f_axial_n or it.resist_mnm or any(it.f_lat)
-                                       or any(it.m_lat)):
-            fp, gp = it.f_lat, it.m_lat
-            r0, r1, r2 = self._RP
-            fl = (r0[0] * fp[0] + r0[1] * fp[1] + r0[2] * fp[2],
-                  r1[0] * fp[0] + r1[1] * fp[1] + r1[2] * fp[2],
-                  r2[0] * fp[0] + r2[1] * fp[1] + r2[2] * fp[2])
-            # the lateral loads' moment arms about the tip (mm -> m for torques)
-            gl = ((r0[0] * gp[0] + r0[1] * gp[1] + r0[2] * gp[2]) * 1e-3,
-                  (r1[0] * gp[0] + r1[1] * gp[1] + r1[2] * gp[2]) * 1e-3,
-                  (r2[0] * gp[0] + r2[1] * gp[1] + r2[2] * gp[2]) * 1e-3)
-            ax = self.axis_0
-            tip = self.tip_0
-            fa = it.f_axial_n
-            o = self.sensor.origin(self._R06, self._p06)
-            # lateral loads along the file (their moment about the tip is -axis x m_lat),
-            # axial force at the tip
-            rt = ((tip[0] - o[0]) * 1e-3, (tip[1] - o[1]) * 1e-3, (tip[2] - o[2]) * 1e-3)
-            fax = (-fa * ax[0], -fa * ax[1], -fa * ax[2])
-            f = (fl[0] + fax[0], fl[1] + fax[1], fl[2] + fax[2])
-            # canal's torque on the file: opposes the motor's torque, about the file axis
-            tq = -self.handpiece.torque_mnm * 1e-3
-            tau = (
-                rt[1] * f[2] - rt[2] * f[1] - (ax[1] * gl[2] - ax[2] * gl[1]) + tq * ax[0],
-                rt[2] * f[0] - rt[0] * f[2] - (ax[2] * gl[0] - ax[0] * gl[2]) + tq * ax[1],
-                rt[0] * f[1] - rt[1] * f[0] - (ax[0] * gl[1] - ax[1] * gl[0]) + tq * ax[2],
-            )
-            self.contact_force_0 = f
-        else:
-            f = tau = (0.0, 0.0, 0.0)
-            self.contact_force_0 = f
-        if self.hand_force_0 != (0.0, 0.0, 0.0):
-            f, tau = self._add_hand(f, tau)
-        self.external_tau_0 = tau
-        self.sensor.sample(self._R06, f, tau)
-
-    def _add_hand(self, f, tau):
-        """Add the operator's hand: ``hand_force_0`` (N, {0}) applied at ``hand_point_6_mm``
-        (the grip, in the flange frame), with its moment about the sensor origin."""
-        R, p = self._R06, self._p06
-        g = self.hand_point_6_mm
-        pt = [p[i] + R[i][0] * g[0] + R[i][1] * g[1] + R[i][2] * g[2] for i in range(3)]
-        o = self.sensor.origin(R, p)
-        r = [(pt[i] - o[i]) * 1e-3 for i in range(3)]
-        h = self.hand_force_0
-        f = (f[0] + h[0], f[1] + h[1], f[2] + h[2])
-        tau = (tau[0] + r[1] * h[2] - r[2] * h[1], tau[1] + r[2] * h[0] - r[0] * h[2],
-               tau[2] + r[0] * h[1] - r[1] * h[0])
-        return f, tau
+        """The sensor's reading now (:func:`dentibot.sim.world_kernels.sense`)."""
+        if self.canal._beam is None:
+            self.canal._prepare(self._file)
+        self.sensor.refill()
+        wk.sense(self.ws, self.sensor.sp, self._F, self.canal._out, self.handpiece.torque_mnm,
+                 self.sensor.ss, self.sensor.noise)
 
     def run(self, seconds: float) -> None:
         """Step ``round(seconds / ts)`` times."""
@@ -321,7 +328,7 @@ class World:
     @property
     def flange_rotation(self) -> np.ndarray:
         """0R_6 now (3x3)."""
-        return np.array(self._R06)
+        return self._F[:3].T.copy()
 
     def completeness(self) -> float:
         """Eq 6.1 for the phantom's canal, in [0, 1]: :meth:`Canal.completeness`, computed

@@ -100,7 +100,7 @@ SCHEMA = pa.schema([
     ("feed_stall_s", pa.float64()), ("faults", pa.int32()),
     ("fatigue_damage_sim", pa.float64()), ("fatigue_damage", pa.float64()),
     ("bending_cycles", pa.float64()), ("peak_strain", pa.float64()),
-    ("wall_s", pa.float64()),
+    ("simulated_s", pa.float64()), ("wall_s", pa.float64()),
 ])
 
 
@@ -312,7 +312,8 @@ def run_procedure(proc: Procedure) -> dict:
         "feed_stall_s": stalled_seconds(meter.t, meter.depth, meter.feeding, until),
         "faults": sum(1 for _, kind, _ in log if kind == "fault"),
         "fatigue_damage_sim": float(w.fatigue_damage), "fatigue_damage": meter.damage,
-        "bending_cycles": meter.cycles, "peak_strain": meter.peak_strain, "wall_s": wall,
+        "bending_cycles": meter.cycles, "peak_strain": meter.peak_strain,
+        "simulated_s": float(w.t), "wall_s": wall,
     }
 
 
