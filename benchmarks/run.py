@@ -17,6 +17,9 @@ process is running beside it):
   recorder and without it (interleaved, repeated), and broken down by component
   (``real_tick.py``). The drill step drills the protocol's rounds, or one round of the
   lock-step round's length when that is shorter (--quick);
+- ``population``: an in-silico trial's procedures on the machine's cores (two at most) as
+  ``dentibot trial`` runs them, beside one of them alone, in simulated seconds per wall second
+  (``population.py``);
 - ``recording``: MCAP recorder throughput on real rows, file size per minute at 500 Hz
   (``recording_speed.py``);
 - ``realtime``: the control task at 500 Hz and 1 kHz for 60 s each (10 s with --quick)
@@ -38,6 +41,9 @@ Key figures of ``--json`` (all measured in the same run):
   extra); ``control_rtb_ratio``: the same chain on those C kinematics over our control
   computation (above 1: ours is faster); ``tick_us_median``: our control computation;
 - ``lockstep_core_*``: the controller and the world alone, without the runner (``lockstep``);
+- ``population_speed_factor``: the trial's simulated procedure-seconds per wall second, in
+  aggregate; ``population_over_single``: its ratio to one procedure alone, same run;
+  ``population_procedures_per_s``;
 - ``lateness_us_p99_500hz``, ``sleep_lateness_us_p99_500hz``, ``overruns_500hz``: 500 Hz on
   the wire with ``realtime_load_jobs`` CPU-bound jobs beside it, with absolute deadlines and
   with plain ``asyncio.sleep``; ``realtime_priority_raised``: how the loop's priority was
@@ -62,13 +68,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import control_tick
 import lockstep
+import population
 import real_tick
 import realtime_loop
 import recording_speed
 import world_step
 from benchutil import fmt, load_average, machine
 
-SECTIONS = ("control", "world", "lockstep", "tick", "recording", "realtime")
+SECTIONS = ("control", "world", "lockstep", "tick", "population", "recording", "realtime")
 
 #: The speed targets: (JSON key, comparison, bound).
 TARGETS = {
@@ -77,6 +84,7 @@ TARGETS = {
     "lockstep_speed_factor_recorder": (">=", 50.0),
     "tick_rtb_ratio": ("<=", 5.0),
     "lockstep_recorder_cost": ("<=", 0.20),
+    "population_speed_factor": (">=", 500.0),
     "lateness_us_p99_500hz": ("<=", 100.0),
     "overruns_500hz": ("<=", 0),
 }
@@ -97,11 +105,14 @@ class Sizes:
     realtime_load: int = 1          # CPU-bound jobs beside the real-time loop
     profile_s: float = 20.0
     tick_repeats: int = 3
+    population_n: int = 16
+    population_round_s: float = 60.0
 
 
 FULL = Sizes()
 QUICK = Sizes(tick_n=3000, world_n=3000, lockstep_s=30.0, recording_rows=3000,
-              realtime_s=10.0, sleep_s=5.0, round_trips=5, profile_s=5.0)
+              realtime_s=10.0, sleep_s=5.0, round_trips=5, profile_s=5.0,
+              population_n=4, population_round_s=20.0)
 
 
 def collect(sizes: Sizes = FULL, sections=SECTIONS, profile: bool = False,
@@ -129,6 +140,10 @@ def collect(sizes: Sizes = FULL, sections=SECTIONS, profile: bool = False,
         say(f"real tick (the main job's drill step, {rounds if tick_s is None else tick_s:g} s "
             f"simulated, recorder on and off x{sizes.tick_repeats}, then broken down)")
         res["tick"] = real_tick.measure(tick_s, sizes.tick_repeats)
+    if "population" in sections:
+        say(f"population ({sizes.population_n} procedures x {sizes.population_round_s:g} s "
+            "drilling, as dentibot trial runs them, then one alone)")
+        res["population"] = population.measure(sizes.population_n, sizes.population_round_s)
     if "recording" in sections:
         say(f"recording ({sizes.recording_rows} real rows)")
         res["recording"] = recording_speed.measure(sizes.recording_rows)
@@ -194,6 +209,11 @@ def flatten(res: dict) -> dict:
         out["lockstep_breakdown"] = tk.get("breakdown")
         rtb = out.get("jacobian_solve_rtb_us_median")
         out["tick_rtb_ratio"] = None if not rtb else out["lockstep_us_per_tick"] / rtb
+    if "population" in res:
+        pp = res["population"]
+        for k in ("population_speed_factor", "population_over_single", "procedures_per_s",
+                  "single_speed_factor"):
+            out[k if k.startswith("population") else f"population_{k}"] = pp[k]
     if "recording" in res:
         first = res["recording"]["cases"][0]          # the protocol runner's setting
         out["recording_ticks_per_s"] = first["ticks_per_s"]
@@ -300,6 +320,14 @@ def print_table(res: dict, flat: dict) -> None:
             top = sorted(b.items(), key=lambda kv: -kv[1])
             rows.append(("  by component, us/tick", "", f"{tk['breakdown_us_per_tick']:.0f} hooked",
                          ", ".join(f"{k} {v:.0f}" for k, v in top if v >= 0.5), ""))
+    if "population" in res:
+        pp = res["population"]
+        rows.append((f"population: {pp['n']} procedures x {pp['round_s']:g} s drilling on "
+                     f"{pp['workers']} workers, in aggregate", ">= 500x",
+                     f"{pp['population_speed_factor']:.1f}x real time",
+                     (f"{pp['procedures_per_s']:.2f} procedures/s; one alone "
+                      f"{pp['single_speed_factor']:.1f}x (x{pp['population_over_single']:.2f}); "
+                      f"{pp['engine']}"), _verdict(flat, "population_speed_factor")))
     if "recording" in res:
         for cse in res["recording"]["cases"]:
             rows.append(((f"recording ({cse['compression']}"

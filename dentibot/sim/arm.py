@@ -18,14 +18,19 @@ Joint speeds (Meca500 manual) are never exceeded, including during the servo lag
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass
 
-from dentibot.control.kinematics import Meca500
+import numpy as np
 
-#: Meca500 error codes used here (programming manual, "error codes").
-ERROR_JOINT_LIMIT = 1007
-ERROR_SINGULARITY = 1012
+import dentibot.sim.arm_kernels as kern
+from dentibot.control.kinematics import Meca500
+from dentibot.sim.arm_kernels import ERROR_JOINT_LIMIT, ERROR_SINGULARITY
+
+__all__ = ["ERROR_JOINT_LIMIT", "ERROR_SINGULARITY", "ArmParams", "SimArmModel"]
+
+#: Velocity commands the robot's queue holds before it grows (a 16 ms dead time at 500 Hz
+#: holds 8).
+QUEUE = 64
 
 
 @dataclass(frozen=True)
@@ -52,134 +57,175 @@ class ArmParams:
 
 
 class SimArmModel:
-    """Joint-space arm state stepped by ``step(t, ts)``; all state in Python floats."""
+    """Joint-space arm state stepped by ``step(t, ts)`` (its state in the arrays of
+    :mod:`dentibot.sim.arm_kernels`, whose kernel it calls)."""
 
     def __init__(self, kin: Meca500, q0_deg, params: ArmParams = ArmParams()) -> None:
         self.kin = kin
+        self.ast = np.zeros(len(kern.STATE_FIELDS))
+        self.ast[kern.S["pos_speed_scale"]] = 1.0
         self.p = params
-        self.q = [float(x) for x in q0_deg]
-        self.qdot = [0.0] * 6
-        self.lo = [float(x) for x in kin.joint_limits_deg[:, 0]]
-        self.hi = [float(x) for x in kin.joint_limits_deg[:, 1]]
-        self.vmax = [float(x) for x in kin.joint_speed_limits_deg_s]
-        self.mode = "idle"  # idle | vel | pos
-        self.vel_cmd = [0.0] * 6
-        self.vel_cmd_t = -math.inf
-        self.target = list(self.q)
-        self.error_code = 0
-        self.moving = False
-        #: position mode speed limit as a fraction of ``vmax`` (SetJointVel / 100)
-        self.pos_speed_scale = 1.0
-        #: velocity commands waiting in the robot's queue: (time they take effect, rates)
-        self._queue: deque = deque()
+        #: rows: lower and upper joint limits (deg), joint speed limits (deg/s)
+        self.lims = np.array([kin.joint_limits_deg[:, 0], kin.joint_limits_deg[:, 1],
+                              kin.joint_speed_limits_deg_s], dtype=float)
+        self._q = np.array([float(x) for x in q0_deg])
+        self._qd = np.zeros(6)
+        self._vel_cmd = np.zeros(6)
+        self._target = self._q.copy()
+        #: velocity commands waiting in the robot's queue: when they take effect, their rates
+        self._queue_t = np.zeros(QUEUE)
+        self._queue_v = np.zeros((QUEUE, 6))
+
+    # ------------------------------------------------------------------ state
+    @property
+    def p(self) -> ArmParams:
+        """The arm's constants (SetVelTimeout replaces them while it runs)."""
+        return self._p
+
+    @p.setter
+    def p(self, params: ArmParams) -> None:
+        self._p = params
+        self.ap = np.array([float(getattr(params, k)) for k in kern.PARAM_FIELDS])
+
+    @property
+    def q(self) -> list[float]:
+        """Joint angles (deg)."""
+        return self._q.tolist()
+
+    @property
+    def qdot(self) -> list[float]:
+        """Joint rates (deg/s)."""
+        return self._qd.tolist()
+
+    @property
+    def vel_cmd(self) -> list[float]:
+        """The velocity command in force (deg/s)."""
+        return self._vel_cmd.tolist()
+
+    @property
+    def target(self) -> list[float]:
+        """The position mode's target (deg)."""
+        return self._target.tolist()
+
+    @property
+    def lo(self) -> list[float]:
+        return self.lims[0].tolist()
+
+    @property
+    def hi(self) -> list[float]:
+        return self.lims[1].tolist()
+
+    @property
+    def vmax(self) -> list[float]:
+        return self.lims[2].tolist()
+
+    @property
+    def mode(self) -> str:
+        """``idle``, ``vel`` (MoveJointsVel) or ``pos`` (MoveJoints)."""
+        return kern.MODES[int(self.ast[kern.S["mode"]])]
+
+    @mode.setter
+    def mode(self, mode: str) -> None:
+        self.ast[kern.S["mode"]] = kern.MODES.index(mode)
+
+    @property
+    def error_code(self) -> int:
+        """The latched Meca500 error (0: none)."""
+        return int(self.ast[kern.S["error_code"]])
+
+    @error_code.setter
+    def error_code(self, code: int) -> None:
+        self.ast[kern.S["error_code"]] = code
+
+    @property
+    def moving(self) -> bool:
+        """A joint moved in the last step."""
+        return bool(self.ast[kern.S["moving"]])
+
+    @property
+    def pos_speed_scale(self) -> float:
+        """Position mode speed limit as a fraction of ``vmax`` (SetJointVel / 100)."""
+        return float(self.ast[kern.S["pos_speed_scale"]])
+
+    @pos_speed_scale.setter
+    def pos_speed_scale(self, scale: float) -> None:
+        self.ast[kern.S["pos_speed_scale"]] = scale
+
+    @property
+    def vel_cmd_t(self) -> float:
+        return float(self.ast[kern.S["vel_cmd_t"]])
 
     # ------------------------------------------------------------------ commands
     def command_velocity(self, qdot_deg_s, t: float) -> bool:
         """MoveJointsVel; returns False (ignored) when the arm is in error."""
         if self.error_code:
             return False
-        v = [float(x) for x in qdot_deg_s]
-        v = [max(-m, min(m, x)) for x, m in zip(v, self.vmax)]
+        v = [max(-m, min(m, float(x))) for x, m in zip(qdot_deg_s, self.lims[2].tolist())]
+        ast = self.ast
         if self.p.vel_dead_time_s > 0.0:
             if self.mode != "vel":
-                self.vel_cmd = [0.0] * 6
-                self.vel_cmd_t = t
-            self._queue.append((t + self.p.vel_dead_time_s, v))
+                self._vel_cmd[:] = 0.0
+                ast[kern.S["vel_cmd_t"]] = t
+            self._enqueue(t + self.p.vel_dead_time_s, v)
         else:
-            self.vel_cmd = v
-            self.vel_cmd_t = t
+            self._vel_cmd[:] = v
+            ast[kern.S["vel_cmd_t"]] = t
         self.mode = "vel"
         return True
+
+    def _enqueue(self, t: float, v) -> None:
+        ast, head, count = self.ast, int(self.ast[kern.S["head"]]), int(self.ast[kern.S["count"]])
+        cap = self._queue_t.shape[0]
+        if count == cap:         # a full ring: twice as long, oldest first
+            order = (head + np.arange(count)) % cap
+            self._queue_t = np.concatenate([self._queue_t[order], np.zeros(cap)])
+            self._queue_v = np.concatenate([self._queue_v[order], np.zeros((cap, 6))])
+            head, cap = 0, 2 * cap
+            ast[kern.S["head"]] = 0.0
+        i = (head + count) % cap
+        self._queue_t[i] = t
+        self._queue_v[i] = v
+        ast[kern.S["count"]] = count + 1
 
     def command_position(self, q_deg) -> bool:
         """MoveJoints; returns False (ignored) when the arm is in error."""
         if self.error_code:
             return False
-        self.target = [float(x) for x in q_deg]
+        self._target[:] = [float(x) for x in q_deg]
         self.mode = "pos"
         return True
 
     def stop(self) -> None:
         self.mode = "idle"
-        self.vel_cmd = [0.0] * 6
-        self._queue.clear()
+        self._vel_cmd[:] = 0.0
+        self._clear_queue()
+
+    def _clear_queue(self) -> None:
+        self.ast[kern.S["head"]] = self.ast[kern.S["count"]] = 0.0
 
     def reset_error(self) -> None:
         self.error_code = 0
         self.mode = "idle"
-        self._queue.clear()
+        self._clear_queue()
 
     def teleport(self, q_deg) -> None:
         """Put the arm at ``q_deg`` at rest (tests and scenario set-up only)."""
-        self.q = [float(x) for x in q_deg]
-        self.qdot = [0.0] * 6
-        self.target = list(self.q)
+        self._q[:] = [float(x) for x in q_deg]
+        self._qd[:] = 0.0
+        self._target[:] = self._q
         self.mode = "idle"
-        self._queue.clear()
+        self._clear_queue()
 
     # ------------------------------------------------------------------ dynamics
     def step(self, t: float, ts: float) -> None:
-        q, qd, vmax = self.q, self.qdot, self.vmax
-        if self.error_code or self.mode == "idle":
-            ref = (0.0,) * 6
-        elif self.mode == "vel":
-            queue = self._queue
-            while queue and queue[0][0] <= t + 1e-9:      # commands leaving the queue
-                self.vel_cmd_t, self.vel_cmd = queue.popleft()
-            ref = self.vel_cmd if t - self.vel_cmd_t <= self.p.vel_timeout_s else (0.0,) * 6
-            g = self.p.vel_gain
-            if g != 1.0:
-                ref = [g * r for r in ref]
-        else:
-            k = 1.0 / max(self.p.position_tau_s, ts)
-            ref = [(a - b) * k for a, b in zip(self.target, q)]
-            s = max(self.pos_speed_scale, 1e-6)
-            scale = max(abs(r) / (m * s) for r, m in zip(ref, vmax))
-            if scale > 1.0:  # synchronous scaling: straight line in joint space
-                ref = [r / scale for r in ref]
-        a = -math.expm1(-ts / self.p.servo_tau_s)   # exact first-order discretisation
-        moving = False
-        new_q = [0.0] * 6
-        for i in range(6):
-            v = qd[i] + (ref[i] - qd[i]) * a
-            m = vmax[i]
-            v = m if v > m else (-m if v < -m else v)  # noqa: FURB136 (hot path)
-            if self.mode == "pos" and not self.error_code:
-                # never overshoot the target within one period
-                rem = self.target[i] - q[i]
-                if (v > 0.0 and v * ts > rem > 0.0) or (v < 0.0 and v * ts < rem < 0.0):
-                    v = rem / ts
-            if abs(v) < 1e-9 or (ref[i] == 0.0 and abs(v) < self.p.rest_deg_s):
-                v = 0.0
-            else:
-                moving = True
-            qd[i] = v
-            new_q[i] = q[i] + v * ts
-        self.moving = moving
-        if not moving:
-            return
-        for i in range(6):
-            if new_q[i] < self.lo[i] or new_q[i] > self.hi[i]:
-                new_q[i] = min(max(new_q[i], self.lo[i]), self.hi[i])
-                self._fault(ERROR_JOINT_LIMIT)
-        if self.mode == "vel" and \
-                abs(math.sin(math.radians(new_q[4]))) < self.p.wrist_singularity_min and \
-                abs(math.sin(math.radians(new_q[4]))) < abs(math.sin(math.radians(q[4]))):
-            # stop before entering the singular band (moving out of it is allowed)
-            new_q = list(q)
-            self._fault(ERROR_SINGULARITY)
-        self.q = new_q
-        if self.error_code:
-            self.qdot = [0.0] * 6
+        """One period of the servo (:func:`dentibot.sim.arm_kernels.step`)."""
+        kern.step(self.ast, self.ap, self.lims, self._q, self._qd, self._vel_cmd, self._target,
+                  self._queue_t, self._queue_v, t, ts)
 
     def _fault(self, code: int) -> None:
-        if not self.error_code:
-            self.error_code = code
-        self.mode = "idle"
-        self.vel_cmd = [0.0] * 6
-        self._queue.clear()
+        kern.fault(self.ast, self._vel_cmd, code)
 
     def reading(self) -> tuple[tuple, tuple]:
         """Quantised (q_deg, qdot_deg_s) as the controller sees them."""
         r = self.p.encoder_res_deg
-        return (tuple(round(x / r) * r for x in self.q), tuple(self.qdot))
+        return (tuple(round(x / r) * r for x in self._q.tolist()), tuple(self._qd.tolist()))

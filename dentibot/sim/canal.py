@@ -57,8 +57,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import dentibot.sim.canal_kernels as kern
 from dentibot.errors import ConfigError
-from dentibot.sim import canal_kernels as kern
 from dentibot.sim.nitifile import NiTiFile
 
 
@@ -269,7 +269,7 @@ class Canal:
         self._file_key = None
 
     # the state, by name (the kernels' arrays hold it)
-    def _state(i):          # noqa: N805 (a property factory)
+    def _state(i):
         return property(lambda self: float(self.st[i]),
                         lambda self, x: self.st.__setitem__(i, x))
 

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import dentibot.sim.ftsensor_kernels as kern
 from dentibot.io.interfaces import WRENCH_SATURATED
-from dentibot.sim import ftsensor_kernels as kern
 
 #: Rows of noise drawn at a time (the seeded stream, block by block).
 NOISE_BLOCK = 4096

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import dentibot.sim.handpiece_kernels as kern
 from dentibot.control.feedrate import (
     GEAR_RATIO,
     KM_MNM_PER_A,
@@ -29,7 +30,6 @@ from dentibot.control.feedrate import (
     file_torque_from_current,
 )
 from dentibot.errors import ConfigError
-from dentibot.sim import handpiece_kernels as kern
 
 #: Samples of current noise drawn at a time (the seeded stream, block by block).
 NOISE_BLOCK = 4096
@@ -97,7 +97,7 @@ class HandpieceModel:
         self.hp = np.array([float(consts[k] if k in consts else getattr(params, k))
                             for k in kern.PARAM_FIELDS])
 
-    def _field(i, doc):          # noqa: N805 (a property factory)
+    def _field(i, doc):
         return property(lambda self: float(self.hs[i]),
                         lambda self, x: self.hs.__setitem__(i, x), doc=doc)
 

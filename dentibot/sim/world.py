@@ -16,12 +16,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+import dentibot.sim.world_kernels as wk
 from dentibot.control.kinematics import Meca500
 from dentibot.sim.arm import ArmParams, SimArmModel
 from dentibot.sim.canal import Canal, CanalParams, Interaction, interaction_of
 from dentibot.sim.ftsensor import FTSensorModel, FTSensorParams
 from dentibot.sim.handpiece import HandpieceModel, HandpieceParams
-from dentibot.sim import world_kernels as wk
 from dentibot.sim.nitifile import FATIGUE_B, FATIGUE_C, FileFractured, NiTiFile
 from dentibot.sim.patient import (
     PATIENT_MOTIONS,
@@ -117,6 +117,8 @@ class World:
         self._completeness_key: tuple | None = None
         self._completeness = 0.0
         self._pose_q = None
+        self._F = np.zeros((4, 3))
+        self._dh = self.kin._dh_arr
         self._update_pose()
         if cfg.phantom_pose is None:
             t0h = self.kin.fk_tool(cfg.q0_deg)
@@ -133,7 +135,7 @@ class World:
         self._sense()
 
     # ------------------------------------------------------------------ state
-    def _vector(name: str, doc: str):     # noqa: N805 (a property factory)
+    def _vector(name: str, doc: str):
         i = wk.S[name]
 
         def get(self) -> tuple[float, float, float]:
@@ -200,10 +202,12 @@ class World:
 
     # ------------------------------------------------------------------ geometry
     def _update_pose(self) -> None:
+        """The flange's pose and the file's tip and axis at the arm's joints (the step
+        updates them itself when the arm moves)."""
         q = self.arm.q
         if q == self._pose_q:
             return
-        self._F = self.kin._chain(q)[5]
+        self._F[:] = self.kin._chain(q)[5]
         wk.pose(self.ws, self.wp, self._F)
         self._pose_q = list(q)
 
@@ -264,19 +268,15 @@ class World:
 
     # ------------------------------------------------------------------ stepping
     def step(self) -> None:
-        """Advance the world by exactly one period ``ts``: the patient and the arm here, then
-        the file in the canal, the handpiece, cutting, fatigue, fracture and the sensor's
-        reading in one compiled call (:func:`dentibot.sim.world_kernels.contact_step`)."""
+        """Advance the world by exactly one period ``ts``: the patient's motion here, then the
+        arm, the file in the canal, the handpiece, cutting, fatigue, fracture and the sensor's
+        reading in one compiled call (:func:`dentibot.sim.world_kernels.step`)."""
         ts = self.ts
         self.t = t = (self.steps + 1) * ts
         self.steps += 1
         if hasattr(self.motion, "rotation_at"):
             self._rotate_patient(t)
-        arm = self.arm
-        arm.step(t, ts)
-        if arm.moving:
-            self._update_pose()
-        ws, canal, hp, sensor = self.ws, self.canal, self.handpiece, self.sensor
+        ws, arm, canal, hp, sensor = self.ws, self.arm, self.canal, self.handpiece, self.sensor
         if self.fractured is None:
             off = self.motion.offset_mm(t)
             pl, pP = self.platform_mm, self._pP
@@ -289,9 +289,12 @@ class World:
         hp.refill()
         sensor.refill()
         b0, b1, b2 = canal._beam
-        code = wk.contact_step(ws, self.wp, self._F, canal.st, canal.cp, canal.R, canal._h,
-                               canal.s, canal.kappa, b0, b1, b2, canal._out, hp.hs, hp.hp,
-                               hp.noise, sensor.ss, sensor.sp, sensor.noise, ts)
+        code = wk.step(ws, self.wp, self._F, self._dh, arm.ast, arm.ap, arm.lims, arm._q,
+                       arm._qd, arm._vel_cmd, arm._target, arm._queue_t, arm._queue_v,
+                       canal.st, canal.cp, canal.R, canal._h, canal.s, canal.kappa, b0, b1, b2,
+                       canal._out, hp.hs, hp.hp, hp.noise, sensor.ss, sensor.sp, sensor.noise,
+                       t, ts)
+        self._pose_q = None
         self._interaction = None
         if code:
             self.fractured = FileFractured(wk.FRACTURE_CAUSES[code], t,

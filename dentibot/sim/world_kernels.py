@@ -16,9 +16,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from dentibot.sim import canal_kernels as canal
-from dentibot.sim import ftsensor_kernels as sensor
-from dentibot.sim import handpiece_kernels as handpiece
+import dentibot.sim.arm_kernels as arm
+import dentibot.sim.canal_kernels as canal
+import dentibot.sim.ftsensor_kernels as sensor
+import dentibot.sim.handpiece_kernels as handpiece
+from dentibot.control.kinematics_kernels import dh_frames
 
 #: The world's state.
 STATE_FIELDS = (
@@ -70,6 +72,27 @@ def clear_interaction(out: np.ndarray) -> None:
     for i in range(out.shape[0]):
         out[i] = 0.0
     out[_C_DEPTH] = -1.0
+
+
+@njit(cache=True)
+def step(ws: np.ndarray, wp: np.ndarray, F: np.ndarray, dh: np.ndarray,
+         ast: np.ndarray, ap: np.ndarray, lims: np.ndarray, q: np.ndarray, qd: np.ndarray,
+         vel_cmd: np.ndarray, target: np.ndarray, queue_t: np.ndarray, queue_v: np.ndarray,
+         cst: np.ndarray, ccp: np.ndarray, cR: np.ndarray, ch: np.ndarray,
+         cs: np.ndarray, ckappa: np.ndarray, b0: np.ndarray, b1: np.ndarray,
+         b2: np.ndarray, cout: np.ndarray,
+         hs: np.ndarray, hp: np.ndarray, hnoise: np.ndarray,
+         ss: np.ndarray, sp: np.ndarray, snoise: np.ndarray, t: float, ts: float) -> int:
+    """One period of the world after the patient's motion (``ws``'s phantom origin and
+    rotation are this step's): the arm's servo (:func:`dentibot.sim.arm_kernels.step`), the
+    flange's pose when it moved (the link table ``dh``: :mod:`~dentibot.control.kinematics_kernels`),
+    then :func:`contact_step`. Returns what :func:`contact_step` returns."""
+    arm.step(ast, ap, lims, q, qd, vel_cmd, target, queue_t, queue_v, t, ts)
+    if ast[arm.S_MOVING] != 0.0:
+        F[:, :] = dh_frames(dh, q)[5]
+        pose(ws, wp, F)
+    return contact_step(ws, wp, F, cst, ccp, cR, ch, cs, ckappa, b0, b1, b2, cout, hs, hp,
+                        hnoise, ss, sp, snoise, ts)
 
 
 @njit(cache=True)
@@ -176,6 +199,8 @@ def sense(ws: np.ndarray, sp: np.ndarray, F: np.ndarray, cout: np.ndarray, torqu
 def warm_up() -> None:
     """Compile (or load from the cache) the kernels for the argument types the world passes
     (a simulator serving a real-time controller must not stall). Called once, at import."""
+    from dentibot.control.kinematics import Meca500
+    from dentibot.sim.arm import SimArmModel
     from dentibot.sim.canal import Canal
     from dentibot.sim.ftsensor import FTSensorModel, FTSensorParams
     from dentibot.sim.handpiece import HandpieceModel, HandpieceParams
@@ -186,13 +211,15 @@ def warm_up() -> None:
     rng = np.random.default_rng(0)
     h = HandpieceModel(HandpieceParams(), rng)
     s = FTSensorModel(FTSensorParams(), rng)
+    a = SimArmModel(Meca500(), (0.0, -10.0, 20.0, 0.0, 80.0, 0.0))
     ws = np.zeros(len(STATE_FIELDS))
     wp = np.ones(len(PARAM_FIELDS))
     F = np.zeros((4, 3))
     pose(ws, wp, F)
     b0, b1, b2 = c._beam
-    contact_step(ws, wp, F, c.st, c.cp, c.R, c._h, c.s, c.kappa, b0, b1, b2, c._out, h.hs,
-                 h.hp, h.noise, s.ss, s.sp, s.noise, 0.002)
+    step(ws, wp, F, a.kin._dh_arr, a.ast, a.ap, a.lims, a._q, a._qd, a._vel_cmd, a._target,
+         a._queue_t, a._queue_v, c.st, c.cp, c.R, c._h, c.s, c.kappa, b0, b1, b2, c._out,
+         h.hs, h.hp, h.noise, s.ss, s.sp, s.noise, 0.002, 0.002)
     clear_interaction(np.zeros(len(canal.OUT_FIELDS)))
 
 
