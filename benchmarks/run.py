@@ -107,6 +107,7 @@ class Sizes:
     tick_repeats: int = 3
     population_n: int = 16
     population_round_s: float = 60.0
+    population_workers: int | None = None     # None: the machine's cores, two at most
 
 
 FULL = Sizes()
@@ -143,7 +144,8 @@ def collect(sizes: Sizes = FULL, sections=SECTIONS, profile: bool = False,
     if "population" in sections:
         say(f"population ({sizes.population_n} procedures x {sizes.population_round_s:g} s "
             "drilling, as dentibot trial runs them, then one alone)")
-        res["population"] = population.measure(sizes.population_n, sizes.population_round_s)
+        res["population"] = population.measure(sizes.population_n, sizes.population_round_s,
+                                               sizes.population_workers)
     if "recording" in sections:
         say(f"recording ({sizes.recording_rows} real rows)")
         res["recording"] = recording_speed.measure(sizes.recording_rows)

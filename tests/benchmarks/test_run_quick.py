@@ -19,10 +19,12 @@ BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
 
 TINY = {"tick_n": 200, "world_n": 200, "lockstep_s": 1.0, "recording_rows": 200,
         "realtime_s": 1.0, "sleep_s": 0.5, "round_trips": 2, "rates": (500.0,),
-        "profile_s": 0.5, "population_n": 2, "population_round_s": 1.0}
+        "profile_s": 0.5, "population_n": 2, "population_round_s": 1.0,
+        "population_workers": 1}
 
 REQUIRED = ("tick_us_median", "world_step_us_median", "lockstep_speed_factor_recorder",
-            "lockstep_recorder_cost", "lateness_us_p99_500hz", "overruns_500hz")
+            "lockstep_recorder_cost", "lateness_us_p99_500hz", "overruns_500hz",
+            "population_speed_factor")
 BASELINES = ("tick_numpy_dh_us_median", "tick_numpy_dh_ratio", "tick_rtb_us_median",
              "control_rtb_ratio", "tick_rtb_ratio", "jacobian_solve_us_median",
              "jacobian_solve_numpy_dh_us_median", "lockstep_us_per_tick",
@@ -30,7 +32,7 @@ BASELINES = ("tick_numpy_dh_us_median", "tick_numpy_dh_ratio", "tick_rtb_us_medi
              "lockstep_core_speed_factor_recorder",
              "sleep_lateness_us_p99_500hz", "sleep_overruns_500hz", "recording_ticks_per_s",
              "recording_mb_per_min", "roundtrip_ms_median_arm", "ft_lost_500hz",
-             "population_speed_factor", "population_over_single")
+             "population_over_single")
 
 
 def _load_run():
