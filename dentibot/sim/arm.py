@@ -28,6 +28,7 @@ from dentibot.sim.arm_kernels import ERROR_JOINT_LIMIT, ERROR_SINGULARITY
 
 __all__ = ["ERROR_JOINT_LIMIT", "ERROR_SINGULARITY", "ArmParams", "SimArmModel"]
 
+_ERROR = kern.S["error_code"]
 #: Velocity commands the robot's queue holds before it grows (a 16 ms dead time at 500 Hz
 #: holds 8).
 QUEUE = 64
@@ -157,35 +158,26 @@ class SimArmModel:
 
     # ------------------------------------------------------------------ commands
     def command_velocity(self, qdot_deg_s, t: float) -> bool:
-        """MoveJointsVel; returns False (ignored) when the arm is in error."""
-        if self.error_code:
+        """MoveJointsVel; returns False (ignored) when the arm is in error
+        (:func:`dentibot.sim.arm_kernels.command_velocity`)."""
+        if self.ast[_ERROR]:
             return False
-        v = [max(-m, min(m, float(x))) for x, m in zip(qdot_deg_s, self.lims[2].tolist())]
-        ast = self.ast
-        if self.p.vel_dead_time_s > 0.0:
-            if self.mode != "vel":
-                self._vel_cmd[:] = 0.0
-                ast[kern.S["vel_cmd_t"]] = t
-            self._enqueue(t + self.p.vel_dead_time_s, v)
-        else:
-            self._vel_cmd[:] = v
-            ast[kern.S["vel_cmd_t"]] = t
-        self.mode = "vel"
+        v = np.asarray(qdot_deg_s, dtype=float)
+        dead = self._p.vel_dead_time_s
+        while not kern.command_velocity(self.ast, self.lims, self._vel_cmd, self._queue_t,
+                                        self._queue_v, v, t, dead):
+            self._grow_queue()
         return True
 
-    def _enqueue(self, t: float, v) -> None:
-        ast, head, count = self.ast, int(self.ast[kern.S["head"]]), int(self.ast[kern.S["count"]])
+    def _grow_queue(self) -> None:
+        """The command queue, full, twice as long (oldest first)."""
+        ast = self.ast
+        head, count = int(ast[kern.S["head"]]), int(ast[kern.S["count"]])
         cap = self._queue_t.shape[0]
-        if count == cap:         # a full ring: twice as long, oldest first
-            order = (head + np.arange(count)) % cap
-            self._queue_t = np.concatenate([self._queue_t[order], np.zeros(cap)])
-            self._queue_v = np.concatenate([self._queue_v[order], np.zeros((cap, 6))])
-            head, cap = 0, 2 * cap
-            ast[kern.S["head"]] = 0.0
-        i = (head + count) % cap
-        self._queue_t[i] = t
-        self._queue_v[i] = v
-        ast[kern.S["count"]] = count + 1
+        order = (head + np.arange(count)) % cap
+        self._queue_t = np.concatenate([self._queue_t[order], np.zeros(cap)])
+        self._queue_v = np.concatenate([self._queue_v[order], np.zeros((cap, 6))])
+        ast[kern.S["head"]] = 0.0
 
     def command_position(self, q_deg) -> bool:
         """MoveJoints; returns False (ignored) when the arm is in error."""

@@ -59,6 +59,37 @@ def fault(ast: np.ndarray, vel_cmd: np.ndarray, code: int) -> None:
 
 
 @njit(cache=True)
+def command_velocity(ast: np.ndarray, lims: np.ndarray, vel_cmd: np.ndarray,
+                     queue_t: np.ndarray, queue_v: np.ndarray, v: np.ndarray, t: float,
+                     dead_time_s: float) -> bool:
+    """MoveJointsVel at time ``t`` (s): the rates ``v`` (deg/s), each clipped to its joint's
+    speed, in force now or, with a dead time, queued until ``t + dead_time_s``. False (and
+    nothing done) when the queue is full: its owner grows it and calls again."""
+    if dead_time_s > 0.0:
+        cap = queue_t.shape[0]
+        count = int(ast[_COUNT])
+        if count == cap:
+            return False
+        if ast[_MODE] != _VEL:
+            vel_cmd[:] = 0.0
+            ast[_CMD_T] = t
+        i = (int(ast[_HEAD]) + count) % cap
+        queue_t[i] = t + dead_time_s
+        dst = queue_v[i]
+        ast[_COUNT] = count + 1
+    else:
+        dst = vel_cmd
+        ast[_CMD_T] = t
+    for j in range(6):
+        m = lims[2, j]
+        x = v[j]
+        x = x if x < m else m        # NaN becomes the limit, as min(m, nan) gives
+        dst[j] = x if x > -m else -m
+    ast[_MODE] = _VEL
+    return True
+
+
+@njit(cache=True)
 def step(ast: np.ndarray, ap: np.ndarray, lims: np.ndarray, q: np.ndarray, qd: np.ndarray,
          vel_cmd: np.ndarray, target: np.ndarray, queue_t: np.ndarray, queue_v: np.ndarray,
          t: float, ts: float) -> None:
@@ -136,6 +167,7 @@ def warm_up() -> None:
     z = np.zeros(6)
     step(ast, ap, lims, z.copy(), z.copy(), np.ones(6), z.copy(), np.zeros(4),
          np.zeros((4, 6)), 0.0, 0.002)
+    command_velocity(ast, lims, z.copy(), np.zeros(4), np.zeros((4, 6)), z, 0.0, 0.016)
 
 
 warm_up()      # at import: before any device streams or loop runs

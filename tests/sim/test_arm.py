@@ -112,3 +112,26 @@ def test_encoder_reading_is_quantised(world):
     world.teleport_arm((0.12345, -10.0, 20.0, 0.0, 80.0, 0.0))
     q, _ = world.arm.reading()
     assert q[0] == pytest.approx(0.123, abs=1e-12)
+
+
+def test_queued_commands_take_effect_after_the_dead_time_in_order_however_many():
+    """With a 1 s dead time, commands given every millisecond for 0.2 s (200, more than the
+    queue first holds) each take effect 1 s after it was given, in order, none lost."""
+    from dentibot.sim.arm import QUEUE, ArmParams, SimArmModel
+
+    arm = SimArmModel(World().kin, (0.0, -10.0, 20.0, 0.0, 80.0, 0.0),
+                      ArmParams(vel_dead_time_s=1.0, vel_timeout_s=10.0))
+    n = 200
+    assert n > QUEUE
+    for k in range(n):
+        arm.command_velocity((0.01 * k, 0, 0, 0, 0, 0), 0.001 * k)
+    assert arm.vel_cmd == [0.0] * 6                # none in force yet
+    for t, k in ((1.0005, 0), (1.0505, 50), (1.1995, 199)):
+        arm.step(t, 0.002)
+        assert arm.vel_cmd[0] == pytest.approx(0.01 * k)   # the last one due by t
+        assert arm.vel_cmd_t == pytest.approx(0.001 * k + 1.0)
+
+
+def test_a_command_is_clipped_to_each_joints_speed(world):
+    world.arm.command_velocity((1e9, -1e9, 1e9, 1.0, -1.0, -1e9), world.t)
+    assert world.arm.vel_cmd == [150.0, -150.0, 180.0, 1.0, -1.0, -500.0]   # VMAX
