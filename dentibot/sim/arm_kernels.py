@@ -83,8 +83,9 @@ def command_velocity(ast: np.ndarray, lims: np.ndarray, vel_cmd: np.ndarray,
     for j in range(6):
         m = lims[2, j]
         x = v[j]
-        x = x if x < m else m        # NaN becomes the limit, as min(m, nan) gives
-        dst[j] = x if x > -m else -m
+        # written out: a NaN becomes the limit (numba's min and max propagate it)
+        x = x if x < m else m  # noqa: FURB136
+        dst[j] = x if x > -m else -m  # noqa: FURB136
     ast[_MODE] = _VEL
     return True
 
