@@ -82,10 +82,7 @@ def command_velocity(ast: np.ndarray, lims: np.ndarray, vel_cmd: np.ndarray,
         ast[_CMD_T] = t
     for j in range(6):
         m = lims[2, j]
-        x = v[j]
-        # written out: a NaN becomes the limit (numba's min and max propagate it)
-        x = x if x < m else m  # noqa: FURB136
-        dst[j] = x if x > -m else -m  # noqa: FURB136
+        dst[j] = max(-m, min(m, v[j]))
     ast[_MODE] = _VEL
     return True
 
