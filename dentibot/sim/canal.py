@@ -240,7 +240,8 @@ class Canal:
         self.R = self.R0.copy()
         self.in_wl = self.s <= wl
         self.width0 = 2.0 * (self.R0 + p.stain_mm) * ds * self.in_wl   # red area before
-        self.red0 = float(self.width0.sum())
+        self._red_buf = np.empty(n)
+        self.red0 = kern.red_area(self.R, self.R0, self.width0, p.stain_mm, self._red_buf)
         self.pulp0 = float(self._pulp().sum())
         ct, st = math.cos(math.radians(p.tilt_deg)), math.sin(math.radians(p.tilt_deg))
         self.t0 = (0.0, -st, ct)                                   # Rx(tilt) z
@@ -318,13 +319,15 @@ class Canal:
         return self._red()[self.in_wl]
 
     def _red(self) -> np.ndarray:
-        # clip to [0, 1] as minimum(maximum()): the same values, without np.clip's overhead
-        return self.width0 * np.minimum(
-            np.maximum(1.0 - (self.R - self.R0) / self.p.stain_mm, 0.0), 1.0)
+        out = np.empty(self.n)
+        kern.red_area(self.R, self.R0, self.width0, self.p.stain_mm, out)
+        return out
 
     def completeness(self) -> float:
-        """Eq 6.1: (red area before - red area now) / red area before, in [0, 1]."""
-        return (self.red0 - float(self._red().sum())) / self.red0
+        """Eq 6.1: (red area before - red area now) / red area before, in [0, 1]
+        (:func:`dentibot.sim.canal_kernels.red_area`)."""
+        red = kern.red_area(self.R, self.R0, self.width0, self.p.stain_mm, self._red_buf)
+        return (self.red0 - red) / self.red0
 
     def _pulp(self) -> np.ndarray:
         return np.where(self.in_wl, np.pi * np.maximum(self.Rt**2 - self.R**2, 0.0), 0.0)

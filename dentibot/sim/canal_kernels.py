@@ -274,6 +274,21 @@ def screw_in_n(st: np.ndarray, cp: np.ndarray, revolutions: float) -> float:
     return pull if revolutions > 0.0 else -cp[_REVERSE] * pull
 
 
+@njit(cache=True)
+def red_area(R: np.ndarray, R0: np.ndarray, width0: np.ndarray, stain_mm: float,
+             out: np.ndarray) -> float:
+    """The red area a photograph across the stained canal shows, per slice into ``out``
+    (mm^2): the slice's stained width ``width0`` (zero beyond the working length) scaled by
+    the stain the file has not cut away, ``clip(1 - (R - R0) / stain, 0, 1)``; returns their
+    sum (see :meth:`dentibot.sim.canal.Canal.completeness`, eq 6.1)."""
+    total = 0.0
+    for i in range(R.shape[0]):
+        left = min(max(1.0 - (R[i] - R0[i]) / stain_mm, 0.0), 1.0)
+        out[i] = width0[i] * left
+        total += out[i]
+    return total
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) the kernels for the argument types the canal passes
     (a simulator serving a real-time controller must not stall). Called once, at import."""
@@ -296,6 +311,7 @@ def warm_up() -> None:
              out)
     cut(st, cp, R, h, 0.1)
     screw_in_n(st, cp, 0.1)
+    red_area(R, R.copy(), s, 0.02, np.empty(n))
 
 
 warm_up()      # at import: before any device streams or loop runs
