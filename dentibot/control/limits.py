@@ -112,4 +112,4 @@ def _factors(s: SingularityMeasure) -> tuple[float, ...]:
 
 def guarded_joints(mask: np.ndarray) -> tuple[int, ...]:
     """The joints a kernel's per-joint ``guarded`` mask marks, as 0-based indices."""
-    return tuple(np.flatnonzero(mask).tolist())
+    return tuple(i for i, g in enumerate(mask.tolist()) if g)

@@ -23,7 +23,9 @@ Start-up (``connect()``; SDOs only here, never in the cyclic exchange):
    consumer time), then read all three back; a drive that does not hold what was written is a
    :class:`ConfigurationMismatch` and the connection fails.
 6. NMT *start*; the cyclic exchange begins (own task with ``sync=True``, else the caller's
-   ``exchange()``) and with it the host's heartbeat; a FAULT found at start-up is reset; then
+   ``exchange()``) and with it the host's heartbeat; the node's own heartbeat confirms
+   OPERATIONAL (within three of its periods: one sent before it took the start may still be
+   on its way); a FAULT found at start-up is reset; then
    the CiA 402 enable sequence (shutdown -> switch on -> enable operation), each step waiting
    for the statusword in TxPDO1, ``state_timeout_s`` in all -> :class:`DeviceFault` naming the
    state it got stuck in.
@@ -481,15 +483,36 @@ class Epos4Driver(CanOpenMaster):
         await self._configure_liveness()
         self._profile_vel = round(self.move_rpm * self.gear_ratio)
         self._cw = CONTROLWORD[Command.DISABLE_VOLTAGE]
+        beats = self.heartbeats
         self._send_nmt(NmtCommand.START, nid)
         self.nmt_state = NmtState.OPERATIONAL
         self._hb_t = time.monotonic()
         self._started = True
         if sync:
             self.start_sync()
+        await self._confirm_operational(beats)
         if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE) or self.startup_error_code:
             await self.fault_reset()
         await self.enable()
+
+    async def _confirm_operational(self, beats: int) -> None:
+        """Wait, the cycle running, for a heartbeat of the node saying OPERATIONAL after the
+        NMT start (``beats``: the heartbeats counted before it). A heartbeat the node sent
+        before it took the start, still PRE-OPERATIONAL, can arrive after it: without this
+        the first read could find that state and fault. Within three heartbeat periods (one
+        in flight, one to come, margin), else :class:`DeviceFault` naming the state the node
+        reports. Nothing to wait for when the node produces no heartbeat."""
+        if not self.heartbeat_ms:
+            return
+        limit_s = 3 * self.heartbeat_ms / 1000.0
+        if not await self._drive_cycles_until(
+                lambda: self.heartbeats > beats and self.nmt_state is NmtState.OPERATIONAL,
+                time.monotonic() + limit_s):
+            seen = "no heartbeat" if self.heartbeats == beats else \
+                f"NMT {self.nmt_state.name if self.nmt_state else 'unknown'}"
+            raise DeviceFault(self.name, f"node {self.node_id} did not report OPERATIONAL "
+                                         f"within {limit_s * 1e3:.0f} ms of the NMT start "
+                                         f"({seen})")
 
     async def _configure_liveness(self) -> None:
         """Quick-stop deceleration 0x6085, abort connection option 0x6007 and the heartbeat

@@ -611,6 +611,7 @@ async def test_startup_configures_and_reads_back_the_liveness_objects():
                                 "abort_connection_option": 1,
                                 "consumer": (127, DEFAULT_CONSUMER_MS)}
         # the host beats on 0x77F, state operational, every host_heartbeat_period_s
+        frames(r.tap)                 # what the connection sent (its length varies)
         await asyncio.sleep(0.2)
         beats = [m for m in frames(r.tap) if m.arbitration_id == 0x77F]
         assert beats and all(bytes(m.data) == b"\x05" for m in beats)
@@ -873,3 +874,68 @@ async def test_recover_is_the_operators_reset_of_a_drive_fault():
         assert world.handpiece.cmd_rpm == 0.0
         await drv.recover()                                   # nothing to reset: a no-op
         assert drv.state is State.OPERATION_ENABLED
+
+
+class _LateBeatNode(Epos4Node):
+    """A drive whose heartbeat, sent just before the NMT start reached it, is still on its way
+    (it says PRE-OPERATIONAL and arrives after the start)."""
+
+    stale_beats = 0
+
+    def on_nmt(self, cmd):
+        if cmd is co.NmtCommand.START and self.nmt_state is NmtState.PRE_OPERATIONAL:
+            self.send_heartbeat()
+            self.stale_beats += 1
+        super().on_nmt(cmd)
+
+
+class _NeverStartsNode(Epos4Node):
+    """A drive that ignores the NMT start."""
+
+    def on_nmt(self, cmd):
+        if cmd is not co.NmtCommand.START:
+            super().on_nmt(cmd)
+
+
+async def _connect_to(node_cls, **drv_kw):
+    ch = channel()
+    world = World(WorldConfig(seed=1))
+    node_bus = can.Bus(interface="virtual", channel=ch)
+    node = node_cls(world, node_bus)
+    drv = Epos4Driver(interface="virtual", channel=ch, consumer_ms=250, stale_after_s=0.5,
+                      feed_timeout_s=None, **drv_kw)
+    return node, node_bus, drv
+
+
+async def test_a_heartbeat_sent_before_the_start_does_not_leave_the_node_pre_operational():
+    """Connect waits for the node's own OPERATIONAL heartbeat: the stale one (PRE-OPERATIONAL,
+    sent before the start) arrives first, the next comes a producer period (500 ms) later;
+    the first read after connect finds the node OPERATIONAL."""
+    node, node_bus, drv = await _connect_to(_LateBeatNode, heartbeat_ms=500)
+    try:
+        await node.start()
+        t0 = time.monotonic()
+        await drv.connect(sync=True)
+        assert node.stale_beats == 1
+        assert drv.nmt_state is NmtState.OPERATIONAL
+        await drv.read()                               # no "NMT PRE_OPERATIONAL" fault
+        assert time.monotonic() - t0 < 3 * 0.5 + 1.0   # within the bound, not stuck
+    finally:
+        await drv.close()
+        await node.close()
+        node_bus.shutdown()
+
+
+async def test_a_node_that_never_reports_operational_fails_connect_within_three_periods():
+    node, node_bus, drv = await _connect_to(_NeverStartsNode, heartbeat_ms=100)
+    try:
+        await node.start()
+        t0 = time.monotonic()
+        with pytest.raises(DeviceFault, match=r"did not report OPERATIONAL within 300 ms "
+                                              r"of the NMT start \(NMT PRE_OPERATIONAL\)"):
+            await drv.connect(sync=True)
+        assert time.monotonic() - t0 < 5.0
+    finally:
+        await drv.close()
+        await node.close()
+        node_bus.shutdown()
