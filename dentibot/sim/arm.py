@@ -214,9 +214,6 @@ class SimArmModel:
         kern.step(self.ast, self.ap, self.lims, self._q, self._qd, self._vel_cmd, self._target,
                   self._queue_t, self._queue_v, t, ts)
 
-    def _fault(self, code: int) -> None:
-        kern.fault(self.ast, self._vel_cmd, code)
-
     def reading(self) -> tuple[tuple, tuple]:
         """Quantised (q_deg, qdot_deg_s) as the controller sees them."""
         r = self.p.encoder_res_deg
