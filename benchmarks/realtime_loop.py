@@ -53,6 +53,7 @@ from dentibot.runtime.clock import (
     RealTimeClock,
     raised_priority,
 )
+from dentibot.runtime.actuate import recover_all
 from dentibot.runtime.config import RuntimeConfig, Thresholds
 from dentibot.app.simulated import true_gravity_model
 from dentibot.sim.world import World, WorldConfig
@@ -172,7 +173,12 @@ def _counters(d) -> dict:
 
 
 async def control_loop(d, world: World, clock: Clock, seconds: float) -> dict:
-    """The runtime's control task paced by ``clock`` for ``seconds``; its timing figures."""
+    """The runtime's control task paced by ``clock`` for ``seconds``; its timing figures.
+    Devices a previous loop left faulted are brought back first (the operator's reset), so
+    that one loop's fault does not become the next one's."""
+    cause = await recover_all(d.motor, d.arm, d.aux)
+    if cause is not None:
+        raise RuntimeError(f"the devices did not recover before the loop: {cause}")
     late: list[float] = []
     comp: list[float] = []
 
