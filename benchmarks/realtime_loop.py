@@ -46,16 +46,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchutil import fmt, quantiles
 
 from dentibot.app.procedure import Procedure
+from dentibot.app.simulated import true_gravity_model
 from dentibot.io.devices import loopback_config, open_devices
+from dentibot.runtime.actuate import recover_all
 from dentibot.runtime.clock import (
     REALTIME_FIFO_PRIORITY,
     Clock,
     RealTimeClock,
     raised_priority,
 )
-from dentibot.runtime.actuate import recover_all
 from dentibot.runtime.config import RuntimeConfig, Thresholds
-from dentibot.app.simulated import true_gravity_model
 from dentibot.sim.world import World, WorldConfig
 
 ROOT = Path(__file__).resolve().parents[1]
