@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dentibot.control.filebeam import FileBeam, beam_compliance
+from dentibot.control.filebeam import FileBeam
 from dentibot.errors import ConfigError
 
 
@@ -69,11 +69,6 @@ class CanalAxisServo:
     def __init__(self, beam: FileBeam, params: AxisServoParams = AxisServoParams(),
                  ts: float = 0.002) -> None:
         self.beam = beam
-        # the beam's tables and its tip compliance c(0, 0), for FileBeam.compliance_mm_n's
-        # kernel every period
-        step, i0, i1, i2 = beam.integrals
-        self._tables = (beam.length_mm, step, i0, i1, i2)
-        self._c00 = beam.compliance_mm_n(0.0, 0.0)
         self.p = params
         self.ts = ts
         self._a_tare = ts / (params.tare_filter_s + ts)
@@ -124,10 +119,9 @@ class CanalAxisServo:
         ``depth_mm`` deep under the lateral force ``force_n`` and the loads' moment arms
         ``arms_nmm`` (= z x M about the tip): steps 2-3 of the module docstring."""
         d = float(depth_mm)
-        L, step, i0, i1, i2 = self._tables
-        c00 = self._c00
-        c0d = beam_compliance(L, step, i0, i1, i2, 0.0, d)
-        cdd = beam_compliance(L, step, i0, i1, i2, d, d)
+        b = self.beam
+        c00, c0d, cdd = b.compliance_mm_n(0.0, 0.0), b.compliance_mm_n(0.0, d), \
+            b.compliance_mm_n(d, d)
         out = np.empty(2)
         for i in range(2):
             p_o = float(arms_nmm[i]) / d

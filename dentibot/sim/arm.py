@@ -25,6 +25,7 @@ import numpy as np
 import dentibot.sim.arm_kernels as kern
 from dentibot.control.kinematics import Meca500
 from dentibot.sim.arm_kernels import ERROR_JOINT_LIMIT, ERROR_SINGULARITY
+from dentibot.sim.state_view import scalar
 
 __all__ = ["ERROR_JOINT_LIMIT", "ERROR_SINGULARITY", "ArmParams", "SimArmModel"]
 
@@ -129,32 +130,14 @@ class SimArmModel:
     def mode(self, mode: str) -> None:
         self.ast[kern.S["mode"]] = kern.MODES.index(mode)
 
-    @property
-    def error_code(self) -> int:
-        """The latched Meca500 error (0: none)."""
-        return int(self.ast[kern.S["error_code"]])
-
-    @error_code.setter
-    def error_code(self, code: int) -> None:
-        self.ast[kern.S["error_code"]] = code
-
-    @property
-    def moving(self) -> bool:
-        """A joint moved in the last step."""
-        return bool(self.ast[kern.S["moving"]])
-
-    @property
-    def pos_speed_scale(self) -> float:
-        """Position mode speed limit as a fraction of ``vmax`` (SetJointVel / 100)."""
-        return float(self.ast[kern.S["pos_speed_scale"]])
-
-    @pos_speed_scale.setter
-    def pos_speed_scale(self, scale: float) -> None:
-        self.ast[kern.S["pos_speed_scale"]] = scale
-
-    @property
-    def vel_cmd_t(self) -> float:
-        return float(self.ast[kern.S["vel_cmd_t"]])
+    error_code = scalar("ast", kern.S["error_code"], int, "The latched Meca500 error "
+                        "(0: none).")
+    moving = scalar("ast", kern.S["moving"], bool, "A joint moved in the last step.",
+                    settable=False)
+    pos_speed_scale = scalar("ast", kern.S["pos_speed_scale"], doc="Position mode speed limit "
+                             "as a fraction of ``vmax`` (SetJointVel / 100).")
+    vel_cmd_t = scalar("ast", kern.S["vel_cmd_t"], doc="When the velocity command in force "
+                       "was given (s).", settable=False)
 
     # ------------------------------------------------------------------ commands
     def command_velocity(self, qdot_deg_s, t: float) -> bool:

@@ -60,6 +60,7 @@ import numpy as np
 import dentibot.sim.canal_kernels as kern
 from dentibot.errors import ConfigError
 from dentibot.sim.nitifile import NiTiFile
+from dentibot.sim.state_view import scalar
 
 
 @dataclass(frozen=True)
@@ -270,47 +271,20 @@ class Canal:
         self._file_key = None
 
     # the state, by name (the kernels' arrays hold it)
-    def _state(i):
-        return property(lambda self: float(self.st[i]),
-                        lambda self, x: self.st.__setitem__(i, x))
-
-    #: debris in the canal (mm^3)
-    debris_mm3 = _state(kern.S["debris"])
-    _last_depth = _state(kern.S["last_depth"])
-    _feed = _state(kern.S["feed"])
-    _slip = _state(kern.S["slip"])
-    _tau_cut = _state(kern.S["tau_cut"])
-    _tau_edges = _state(kern.S["tau_edges"])
-    del _state
-
-    @property
-    def _entered(self) -> bool:
-        return bool(self.st[kern.S["entered"]])
-
-    @_entered.setter
-    def _entered(self, yes: bool) -> None:
-        self.st[kern.S["entered"]] = 1.0 if yes else 0.0
-
-    @property
-    def turning(self) -> bool:
-        """Whether the file turns (set by the world each step): a still file sticks."""
-        return bool(self.st[kern.S["turning"]])
-
-    @turning.setter
-    def turning(self, yes: bool) -> None:
-        self.st[kern.S["turning"]] = 1.0 if yes else 0.0
-
-    @property
-    def version(self) -> int:
-        """Counts the changes of the lumen ``R`` (each :meth:`cut` that removes material; code
-        that writes ``R`` itself adds one too): what is derived from the lumen alone
-        (completeness, shaping) is the same while it is unchanged, so a caller may keep it
-        keyed on this (:meth:`dentibot.sim.world.World.completeness`)."""
-        return int(self.st[kern.S["version"]])
-
-    @version.setter
-    def version(self, n: int) -> None:
-        self.st[kern.S["version"]] = float(n)
+    debris_mm3 = scalar("st", kern.S["debris"], doc="Debris in the canal (mm^3).")
+    _last_depth = scalar("st", kern.S["last_depth"])
+    _feed = scalar("st", kern.S["feed"])
+    _slip = scalar("st", kern.S["slip"])
+    _tau_cut = scalar("st", kern.S["tau_cut"])
+    _tau_edges = scalar("st", kern.S["tau_edges"])
+    _entered = scalar("st", kern.S["entered"], bool)
+    turning = scalar("st", kern.S["turning"], bool, "Whether the file turns (set by the world "
+                     "each step): a still file sticks.")
+    version = scalar("st", kern.S["version"], int, """Counts the changes of the lumen ``R``
+        (each :meth:`cut` that removes material; code that writes ``R`` itself adds one
+        too): what is derived from the lumen alone (completeness, shaping) is the same while
+        it is unchanged, so a caller may keep it keyed on this
+        (:meth:`dentibot.sim.world.World.completeness`).""")
 
     # ------------------------------------------------------------------ pulp
     def red_area_mm2(self) -> np.ndarray:

@@ -83,8 +83,9 @@ O = _index(OUT_FIELDS)
  _RUB, _RUB_CLEAR, _AX_A, _AX_DEB, _AX_V, _BOTTOM_TQ, _DRAG_B, _DRAG_C, _DRAG_STATIC,
  _DRAG_V0, _DRAG_LAT, _SUPPORT, _SUPPORT_Y, _WALL_K, _C_REV, _C_FWD, _U_S, _SCREW,
  _REVERSE, _F_TIP, _F_TAPER, _F_LENGTH, _B_STEP) = range(len(PARAM_FIELDS))
-(_O_DEPTH, _O_FX, _O_FY, _O_FZ, _O_CONTACT, _O_MX, _O_MY, _O_MZ, _O_AXIAL, _O_RESIST,
- _O_ENGAGE, _O_STRAIN) = range(len(OUT_FIELDS))
+#: The outcome's indices (the world's kernel reads them too).
+(OUT_DEPTH, OUT_FX, OUT_FY, OUT_FZ, OUT_CONTACT, OUT_MX, OUT_MY, OUT_MZ, OUT_AXIAL,
+ OUT_RESIST, OUT_ENGAGE, OUT_STRAIN) = range(len(OUT_FIELDS))
 
 #: Indices other kernels use (compiled constants).
 P_DRAG, P_REVERSE, S_TURNING = _DRAG, _REVERSE, _TURNING
@@ -102,7 +103,7 @@ def interact(st: np.ndarray, cp: np.ndarray, R: np.ndarray, h: np.ndarray, s: np
     for i in range(out.shape[0]):
         out[i] = 0.0
     s_tip = tx * cp[_T0X] + ty * cp[_T0Y] + tz * cp[_T0Z]
-    out[_O_DEPTH] = s_tip
+    out[OUT_DEPTH] = s_tip
     st[_WIN0] = 0.0
     st[_WIN1] = 0.0
     last = st[_LAST]
@@ -138,8 +139,8 @@ def interact(st: np.ndarray, cp: np.ndarray, R: np.ndarray, h: np.ndarray, s: np
     r_tip = R[max(i_tip - 1, 0)]
     if st[_ENTERED] == 0.0:
         if math.hypot(eu, ev) > r_tip + cp[_ACCESS]:
-            out[_O_DEPTH] = -1.0   # on the chamber floor, not in the canal
-            out[_O_AXIAL] = cp[_BOTTOM_K] * s_tip
+            out[OUT_DEPTH] = -1.0   # on the chamber floor, not in the canal
+            out[OUT_AXIAL] = cp[_BOTTOM_K] * s_tip
             return
         # once in the canal the tip stays there: a large offset bends the file instead
         st[_ENTERED] = 1.0
@@ -157,7 +158,7 @@ def interact(st: np.ndarray, cp: np.ndarray, R: np.ndarray, h: np.ndarray, s: np
         if g[i] > -cp[_RUB_CLEAR]:
             touching += 1
     area *= ds
-    out[_O_ENGAGE] = area
+    out[OUT_ENGAGE] = area
     i1 = min(i_tip, int(cp[_NSTRAIGHT]))
     nsum = 0.0
     if i1 > i0:
@@ -167,13 +168,13 @@ def interact(st: np.ndarray, cp: np.ndarray, R: np.ndarray, h: np.ndarray, s: np
             s[i0:i1], g[: i1 - i0], au, av, eu, ev, s_tip, cp[_WALL_K] * ds, sup,
             cp[_SUPPORT_Y], cp[_F_LENGTH], cp[_B_STEP], b0, b1, b2)
         if total > 0.0:
-            out[_O_FX] = fu * ux + fv * vx
-            out[_O_FY] = fu * uy + fv * vy
-            out[_O_FZ] = fu * uz + fv * vz
-            out[_O_MX] = mu * ux + mv * vx
-            out[_O_MY] = mu * uy + mv * vy
-            out[_O_MZ] = mu * uz + mv * vz
-            out[_O_CONTACT] = d
+            out[OUT_FX] = fu * ux + fv * vx
+            out[OUT_FY] = fu * uy + fv * vy
+            out[OUT_FZ] = fu * uz + fv * vz
+            out[OUT_MX] = mu * ux + mv * vx
+            out[OUT_MY] = mu * uy + mv * vy
+            out[OUT_MZ] = mu * uz + mv * vz
+            out[OUT_CONTACT] = d
             nsum = total
     deb = st[_DEBRIS]
     fin = max(feed, 0.0)
@@ -181,7 +182,7 @@ def interact(st: np.ndarray, cp: np.ndarray, R: np.ndarray, h: np.ndarray, s: np
     st[_TAU_CUT] = tau_cut
     st[_TAU_EDGES] = tau_cut
     # the file's diameter at the contact (FileBeam.diameter_mm)
-    x = min(max(out[_O_CONTACT], 0.0), WORKING_PART_MM)
+    x = min(max(out[OUT_CONTACT], 0.0), WORKING_PART_MM)
     diameter = cp[_F_TIP] + cp[_F_TAPER] * x
     resist = tau_cut + cp[_K_DEB] * deb + cp[_MU] * nsum * diameter / 2.0
     if cp[_RUB] != 0.0:
@@ -194,17 +195,17 @@ def interact(st: np.ndarray, cp: np.ndarray, R: np.ndarray, h: np.ndarray, s: np
         f_bottom = cp[_BOTTOM_K] * (s_tip - cp[_BOTTOM])
         fa += f_bottom
         resist += cp[_BOTTOM_TQ] * f_bottom
-    out[_O_RESIST] = resist
+    out[OUT_RESIST] = resist
     if drag:
         fa += _drag_forces(st, cp, out, eu, ev, dt)
-    out[_O_AXIAL] = fa
+    out[OUT_AXIAL] = fa
     if cp[_CURVED] != 0.0:
         strain = 0.0
         for i in range(i0, i_tip):   # r_f / rho = d / (2 rho)
             e = kappa[i] * (g[i - i0] + R[i])
             if e > strain or i == i0:
                 strain = e
-        out[_O_STRAIN] = strain
+        out[OUT_STRAIN] = strain
     st[_WIN0] = i0
     st[_WIN1] = i_tip
     st[_WINC] = c
@@ -221,14 +222,14 @@ def _drag_forces(st: np.ndarray, cp: np.ndarray, out: np.ndarray, eu: float, ev:
     had, last_u, last_v = st[_HAS_E], st[_EU], st[_EV]
     st[_HAS_E], st[_EU], st[_EV] = 1.0, eu, ev
     if cp[_DRAG_LAT] != 0.0 and had != 0.0 and (
-            out[_O_FX] != 0.0 or out[_O_FY] != 0.0 or out[_O_FZ] != 0.0):
+            out[OUT_FX] != 0.0 or out[OUT_FY] != 0.0 or out[OUT_FZ] != 0.0):
         c = cp[_DRAG_LAT] / dt
         du, dv = (eu - last_u) * c, (ev - last_v) * c
-        d = out[_O_CONTACT]     # the damping acts at the contact
+        d = out[OUT_CONTACT]     # the damping acts at the contact
         for k in range(3):
             dl = du * cp[_UX + k] + dv * cp[_VX + k]
-            out[_O_FX + k] -= dl
-            out[_O_MX + k] -= d * dl
+            out[OUT_FX + k] -= dl
+            out[OUT_MX + k] -= d * dl
     return fa
 
 

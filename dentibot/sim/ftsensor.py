@@ -19,6 +19,7 @@ import numpy as np
 
 import dentibot.sim.ftsensor_kernels as kern
 from dentibot.io.interfaces import WRENCH_SATURATED
+from dentibot.sim.state_view import scalar, vector
 
 #: Rows of noise drawn at a time (the seeded stream, block by block).
 NOISE_BLOCK = 4096
@@ -87,25 +88,14 @@ class FTSensorModel:
             self.noise = self._draw()
             self.ss[kern.S["k"]] = 0.0
 
-    @property
-    def last(self) -> tuple:
-        """The last reading after tare (N, N*m, {S})."""
-        return tuple(self.ss[0:6].tolist())
-
-    @property
-    def raw(self) -> tuple:
-        """The last reading before tare (quantised)."""
-        return tuple(self.ss[6:12].tolist())
-
-    @property
-    def tare(self) -> tuple:
-        """What :meth:`bias` subtracts from every reading."""
-        return tuple(self.ss[12:18].tolist())
-
-    @property
-    def status(self) -> int:
-        """The last reading's status word (``WRENCH_SATURATED`` when saturated)."""
-        return int(self.ss[kern.S["status"]])
+    last = vector("ss", kern.S["last0"], 6, "The last reading after tare (N, N*m, {S}).",
+                  settable=False)
+    raw = vector("ss", kern.S["raw0"], 6, "The last reading before tare (quantised).",
+                 settable=False)
+    tare = vector("ss", kern.S["tare0"], 6, "What :meth:`bias` subtracts from every reading.",
+                  settable=False)
+    status = scalar("ss", kern.S["status"], int, "The last reading's status word "
+                    "(``WRENCH_SATURATED`` when saturated).", settable=False)
 
     def origin(self, R06, p06) -> tuple[float, float, float]:
         """{S} origin in {0} (mm) given the flange rotation rows R06 and position p06."""

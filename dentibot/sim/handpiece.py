@@ -30,6 +30,7 @@ from dentibot.control.feedrate import (
     file_torque_from_current,
 )
 from dentibot.errors import ConfigError
+from dentibot.sim.state_view import scalar
 
 #: Samples of current noise drawn at a time (the seeded stream, block by block).
 NOISE_BLOCK = 4096
@@ -97,19 +98,18 @@ class HandpieceModel:
         self.hp = np.array([float(consts[k] if k in consts else getattr(params, k))
                             for k in kern.PARAM_FIELDS])
 
-    def _field(i, doc):
-        return property(lambda self: float(self.hs[i]),
-                        lambda self, x: self.hs.__setitem__(i, x), doc=doc)
-
-    omega_rpm = _field(kern.S["omega_rpm"], "File speed (rpm).")
-    pos_deg = _field(kern.S["pos_deg"], "File position (deg).")
-    cmd_rpm = _field(kern.S["cmd_rpm"], "Commanded file speed (rpm).")
-    target_deg = _field(kern.S["target_deg"], "Target of a position move (deg).")
-    current_a = _field(kern.S["current_a"], "The motor current reading (A).")
-    torque_mnm = _field(kern.S["torque_mnm"], "Signed torque the motor applies to the file.")
-    current_limit_a = _field(kern.S["current_limit_a"], "The drive's output current limit (A).")
-    _move_rpm = _field(kern.S["move_rpm"], "Speed of a position move (rpm).")
-    del _field
+    omega_rpm = scalar("hs", kern.S["omega_rpm"], doc="File speed (rpm).")
+    pos_deg = scalar("hs", kern.S["pos_deg"], doc="File position (deg).")
+    cmd_rpm = scalar("hs", kern.S["cmd_rpm"], doc="Commanded file speed (rpm).")
+    target_deg = scalar("hs", kern.S["target_deg"], doc="Target of a position move (deg).")
+    current_a = scalar("hs", kern.S["current_a"], doc="The motor current reading (A).")
+    torque_mnm = scalar("hs", kern.S["torque_mnm"],
+                        doc="Signed torque the motor applies to the file.")
+    current_limit_a = scalar("hs", kern.S["current_limit_a"],
+                             doc="The drive's output current limit (A).")
+    _move_rpm = scalar("hs", kern.S["move_rpm"], doc="Speed of a position move (rpm).")
+    stalled = scalar("hs", kern.S["stalled"], bool,
+                     "The load exceeds the torque of the current limit.", settable=False)
 
     @property
     def mode(self) -> str:
@@ -119,11 +119,6 @@ class HandpieceModel:
     @mode.setter
     def mode(self, mode: str) -> None:
         self.hs[kern.S["pos_mode"]] = 1.0 if mode == "pos" else 0.0
-
-    @property
-    def stalled(self) -> bool:
-        """The load exceeds the torque of the current limit."""
-        return bool(self.hs[kern.S["stalled"]])
 
     def set_velocity(self, rpm: float) -> None:
         rpm = float(rpm)

@@ -31,6 +31,7 @@ from dentibot.sim.patient import (
     StewartSquare,
     patient_motion,
 )
+from dentibot.sim.state_view import scalar, vector
 
 #: Control period (s), thesis 3.1 (500 Hz).
 TS = 0.002
@@ -116,9 +117,7 @@ class World:
         self._interaction: Interaction | None = None
         self._completeness_key: tuple | None = None
         self._completeness = 0.0
-        self._pose_q = None
         self._F = np.zeros((4, 3))
-        self._dh = self.kin._dh_arr
         self._update_pose()
         if cfg.phantom_pose is None:
             t0h = self.kin.fk_tool(cfg.q0_deg)
@@ -135,30 +134,19 @@ class World:
         self._sense()
 
     # ------------------------------------------------------------------ state
-    def _vector(name: str, doc: str):
-        i = wk.S[name]
-
-        def get(self) -> tuple[float, float, float]:
-            return tuple(self.ws[i:i + 3].tolist())
-
-        def put(self, v) -> None:
-            self.ws[i:i + 3] = v
-
-        return property(get, put, doc=doc)
-
-    tip_0 = _vector("tip_x", "The file's tip in {0} (mm).")
-    axis_0 = _vector("axis_x", "The file's axis in {0} (unit, towards the tip).")
-    contact_force_0 = _vector("contact_x", "The canal's net force on the file, {0} (N).")
-    external_tau_0 = _vector("ext_tau_x", "The external torque about the sensor's origin, "
-                             "{0} (N*m).")
-    hand_force_0 = _vector("hand_x", "The operator's hand on the handpiece, {0} (N).")
-    hand_point_6_mm = _vector("grip_x", "Where the hand holds it, in the flange frame (mm).")
-    del _vector
-
-    @property
-    def fatigue_damage(self) -> float:
-        """Miner's sum of the file's bending cycles (1: it breaks)."""
-        return float(self.ws[wk.S["fatigue_damage"]])
+    tip_0 = vector("ws", wk.S["tip_x"], 3, "The file's tip in {0} (mm).")
+    axis_0 = vector("ws", wk.S["axis_x"], 3, "The file's axis in {0} (unit, towards the tip).")
+    contact_force_0 = vector("ws", wk.S["contact_x"], 3,
+                             "The canal's net force on the file, {0} (N).")
+    external_tau_0 = vector("ws", wk.S["ext_tau_x"], 3,
+                            "The external torque about the sensor's origin, {0} (N*m).")
+    hand_force_0 = vector("ws", wk.S["hand_x"], 3,
+                          "The operator's hand on the handpiece, {0} (N).")
+    hand_point_6_mm = vector("ws", wk.S["grip_x"], 3,
+                             "Where the hand holds it, in the flange frame (mm).")
+    fatigue_damage = scalar("ws", wk.S["fatigue_damage"],
+                            doc="Miner's sum of the file's bending cycles (1: it breaks).",
+                            settable=False)
 
     @property
     def file(self) -> NiTiFile:
@@ -204,12 +192,7 @@ class World:
     def _update_pose(self) -> None:
         """The flange's pose and the file's tip and axis at the arm's joints (the step
         updates them itself when the arm moves)."""
-        q = self.arm.q
-        if q == self._pose_q:
-            return
-        self._F[:] = self.kin._chain(q)[5]
-        wk.pose(self.ws, self.wp, self._F)
-        self._pose_q = list(q)
+        wk.update_pose(self.ws, self.wp, self._F, self.kin._dh_arr, self.arm._q)
 
     def phantom_origin_0(self) -> tuple[float, float, float]:
         """Canal orifice (origin of {P}) in {0} now (mm), including patient motion."""
@@ -278,23 +261,17 @@ class World:
             self._rotate_patient(t)
         ws, arm, canal, hp, sensor = self.ws, self.arm, self.canal, self.handpiece, self.sensor
         if self.fractured is None:
-            off = self.motion.offset_mm(t)
-            pl, pP = self.platform_mm, self._pP
-            i = _ORIGIN
-            ws[i] = pP[0] + off[0] + pl[0]
-            ws[i + 1] = pP[1] + off[1] + pl[1]
-            ws[i + 2] = pP[2] + off[2] + pl[2]
-            if canal._file_key is not self._file:
-                canal._prepare(self._file)
+            ws[_ORIGIN:_ORIGIN + 3] = self.phantom_origin_0()
+        if canal._file_key is not self._file:
+            canal._prepare(self._file)
         hp.refill()
         sensor.refill()
         b0, b1, b2 = canal._beam
-        code = wk.step(ws, self.wp, self._F, self._dh, arm.ast, arm.ap, arm.lims, arm._q,
-                       arm._qd, arm._vel_cmd, arm._target, arm._queue_t, arm._queue_v,
+        code = wk.step(ws, self.wp, self._F, self.kin._dh_arr, arm.ast, arm.ap, arm.lims,
+                       arm._q, arm._qd, arm._vel_cmd, arm._target, arm._queue_t, arm._queue_v,
                        canal.st, canal.cp, canal.R, canal._h, canal.s, canal.kappa, b0, b1, b2,
                        canal._out, hp.hs, hp.hp, hp.noise, sensor.ss, sensor.sp, sensor.noise,
                        t, ts)
-        self._pose_q = None
         self._interaction = None
         if code:
             self.fractured = FileFractured(wk.FRACTURE_CAUSES[code], t,
@@ -302,8 +279,6 @@ class World:
 
     def _sense(self) -> None:
         """The sensor's reading now (:func:`dentibot.sim.world_kernels.sense`)."""
-        if self.canal._beam is None:
-            self.canal._prepare(self._file)
         self.sensor.refill()
         wk.sense(self.ws, self.sensor.sp, self._F, self.canal._out, self.handpiece.torque_mnm,
                  self.sensor.ss, self.sensor.noise)

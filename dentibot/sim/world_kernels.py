@@ -52,8 +52,6 @@ _TIP, _AXIS, _ORIGIN, _RP, _CONTACT, _EXT_TAU, _HAND, _GRIP = 0, 3, 6, 9, 18, 21
 _FRACTURED, _FATIGUE, _FR_TORQUE, _FR_DEPTH = 30, 31, 32, 33
 _TOOL_P, _TOOL_Z, _FAT_C, _FAT_B, _STRENGTH = 0, 3, 6, 7, 8
 
-_C_DEPTH, _C_F, _C_M, _C_AXIAL, _C_RESIST = 0, 1, 5, 8, 9
-_C_ENGAGE, _C_STRAIN = 10, 11
 
 
 @njit(cache=True)
@@ -67,11 +65,20 @@ def pose(ws: np.ndarray, wp: np.ndarray, F: np.ndarray) -> None:
 
 
 @njit(cache=True)
+def update_pose(ws: np.ndarray, wp: np.ndarray, F: np.ndarray, dh: np.ndarray,
+                q: np.ndarray) -> None:
+    """The flange's pose ``F`` at the joints ``q`` (deg; the link table ``dh``:
+    :mod:`~dentibot.control.kinematics_kernels`), then the file's tip and axis."""
+    F[:, :] = dh_frames(dh, q)[5]
+    pose(ws, wp, F)
+
+
+@njit(cache=True)
 def clear_interaction(out: np.ndarray) -> None:
     """No contact: the canal's outcome as a file outside it (depth -1)."""
     for i in range(out.shape[0]):
         out[i] = 0.0
-    out[_C_DEPTH] = -1.0
+    out[canal.OUT_DEPTH] = -1.0
 
 
 @njit(cache=True)
@@ -89,8 +96,7 @@ def step(ws: np.ndarray, wp: np.ndarray, F: np.ndarray, dh: np.ndarray,
     then :func:`contact_step`. Returns what :func:`contact_step` returns."""
     arm.step(ast, ap, lims, q, qd, vel_cmd, target, queue_t, queue_v, t, ts)
     if ast[arm.S_MOVING] != 0.0:
-        F[:, :] = dh_frames(dh, q)[5]
-        pose(ws, wp, F)
+        update_pose(ws, wp, F, dh, q)
     return contact_step(ws, wp, F, cst, ccp, cR, ch, cs, ckappa, b0, b1, b2, cout, hs, hp,
                         hnoise, ss, sp, snoise, ts)
 
@@ -120,13 +126,13 @@ def contact_step(ws: np.ndarray, wp: np.ndarray, F: np.ndarray,
             cst[canal.S_TURNING] = 1.0 if hs[handpiece.S_OMEGA] != 0.0 else 0.0
         canal.interact(cst, ccp, cR, ch, cs, ckappa, b0, b1, b2, tip_p[0], tip_p[1],
                        tip_p[2], axis_p[0], axis_p[1], axis_p[2], ts, cout)
-        resist = cout[_C_RESIST]
+        resist = cout[canal.OUT_RESIST]
         dpos = handpiece.step(hs, hp, hnoise, ts, resist, resist * ccp[canal.P_REVERSE])
         rev = dpos / 360.0
-        if cout[_C_ENGAGE] > 0.0 or rev < 0.0:
+        if cout[canal.OUT_ENGAGE] > 0.0 or rev < 0.0:
             canal.cut(cst, ccp, cR, ch, rev)
-            cout[_C_AXIAL] -= canal.screw_in_n(cst, ccp, rev)
-        strain = cout[_C_STRAIN]
+            cout[canal.OUT_AXIAL] -= canal.screw_in_n(cst, ccp, rev)
+        strain = cout[canal.OUT_STRAIN]
         if strain > 0.0 and rev != 0.0:   # Miner's rule, a Coffin-Manson strain-life
             ws[_FATIGUE] += abs(rev) / (wp[_FAT_C] / strain) ** (1.0 / wp[_FAT_B])
         torque = abs(hs[handpiece.S_TORQUE])
@@ -137,7 +143,7 @@ def contact_step(ws: np.ndarray, wp: np.ndarray, F: np.ndarray,
         if code:
             ws[_FRACTURED] = 1.0
             ws[_FR_TORQUE] = torque
-            ws[_FR_DEPTH] = cout[_C_DEPTH]
+            ws[_FR_DEPTH] = cout[canal.OUT_DEPTH]
             clear_interaction(cout)
     else:
         handpiece.step(hs, hp, hnoise, ts, 0.0, 0.0)
@@ -153,15 +159,15 @@ def sense(ws: np.ndarray, sp: np.ndarray, F: np.ndarray, cout: np.ndarray, torqu
     d = sp[sensor.P_OFFSET_MM]
     # the sensor's origin in {0}: p06 + 0R_6 z d
     o0, o1, o2 = F[3, 0] + F[2, 0] * d, F[3, 1] + F[2, 1] * d, F[3, 2] + F[2, 2] * d
-    fa = cout[_C_AXIAL]
-    loaded = fa != 0.0 or cout[_C_RESIST] != 0.0
+    fa = cout[canal.OUT_AXIAL]
+    loaded = fa != 0.0 or cout[canal.OUT_RESIST] != 0.0
     for k in range(3):
-        loaded = loaded or cout[_C_F + k] != 0.0 or cout[_C_M + k] != 0.0
+        loaded = loaded or cout[canal.OUT_FX + k] != 0.0 or cout[canal.OUT_MX + k] != 0.0
     f0 = f1 = f2 = t0 = t1 = t2 = 0.0
     if ws[_FRACTURED] == 0.0 and loaded:
         rp = ws[_RP:_RP + 9]
-        fp0, fp1, fp2 = cout[_C_F], cout[_C_F + 1], cout[_C_F + 2]
-        gp0, gp1, gp2 = cout[_C_M], cout[_C_M + 1], cout[_C_M + 2]
+        fp0, fp1, fp2 = cout[canal.OUT_FX], cout[canal.OUT_FX + 1], cout[canal.OUT_FX + 2]
+        gp0, gp1, gp2 = cout[canal.OUT_MX], cout[canal.OUT_MX + 1], cout[canal.OUT_MX + 2]
         fl0 = rp[0] * fp0 + rp[1] * fp1 + rp[2] * fp2
         fl1 = rp[3] * fp0 + rp[4] * fp1 + rp[5] * fp2
         fl2 = rp[6] * fp0 + rp[7] * fp1 + rp[8] * fp2
@@ -215,7 +221,7 @@ def warm_up() -> None:
     ws = np.zeros(len(STATE_FIELDS))
     wp = np.ones(len(PARAM_FIELDS))
     F = np.zeros((4, 3))
-    pose(ws, wp, F)
+    update_pose(ws, wp, F, a.kin._dh_arr, a._q)
     b0, b1, b2 = c._beam
     step(ws, wp, F, a.kin._dh_arr, a.ast, a.ap, a.lims, a._q, a._qd, a._vel_cmd, a._target,
          a._queue_t, a._queue_v, c.st, c.cp, c.R, c._h, c.s, c.kappa, b0, b1, b2, c._out,

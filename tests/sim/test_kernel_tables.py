@@ -24,9 +24,9 @@ TABLES = [
         "reverse_factor", "_F_TIP": "file_tip_mm", "_B_STEP": "beam_step_mm",
         "P_DRAG": "drag", "P_REVERSE": "reverse_factor"}),
     (canal_kernels, "OUT_FIELDS", {
-        "_O_DEPTH": "depth_mm", "_O_FX": "f_lat_x", "_O_CONTACT": "contact_from_tip_mm",
-        "_O_MX": "m_lat_x", "_O_AXIAL": "f_axial_n", "_O_RESIST": "resist_mnm",
-        "_O_ENGAGE": "engagement_mm2", "_O_STRAIN": "max_strain"}),
+        "OUT_DEPTH": "depth_mm", "OUT_FX": "f_lat_x", "OUT_CONTACT": "contact_from_tip_mm",
+        "OUT_MX": "m_lat_x", "OUT_AXIAL": "f_axial_n", "OUT_RESIST": "resist_mnm",
+        "OUT_ENGAGE": "engagement_mm2", "OUT_STRAIN": "max_strain"}),
     (handpiece_kernels, "STATE_FIELDS", {
         "_W": "omega_rpm", "_POS_MODE": "pos_mode", "_TORQUE": "torque_mnm",
         "_LIMIT": "current_limit_a", "_K": "k", "_T": "t", "S_OMEGA": "omega_rpm",
@@ -56,15 +56,6 @@ def test_each_index_is_its_fields_position(module, table, constants):
     assert len(set(fields)) == len(fields)
     for const, field in constants.items():
         assert getattr(module, const) == fields.index(field), (const, field)
-
-
-def test_the_world_reads_the_canals_outcome_where_the_canal_writes_it():
-    o = canal_kernels.OUT_FIELDS
-    assert (world_kernels._C_DEPTH, world_kernels._C_F, world_kernels._C_M,
-            world_kernels._C_AXIAL, world_kernels._C_RESIST, world_kernels._C_ENGAGE,
-            world_kernels._C_STRAIN) == (
-        o.index("depth_mm"), o.index("f_lat_x"), o.index("m_lat_x"), o.index("f_axial_n"),
-        o.index("resist_mnm"), o.index("engagement_mm2"), o.index("max_strain"))
 
 
 def test_the_vectors_fields_are_consecutive():
