@@ -25,7 +25,7 @@ import numpy as np
 import dentibot.sim.arm_kernels as kern
 from dentibot.control.kinematics import Meca500
 from dentibot.sim.arm_kernels import ERROR_JOINT_LIMIT, ERROR_SINGULARITY
-from dentibot.sim.state_view import scalar
+from dentibot.sim.state_view import listed, scalar
 
 __all__ = ["ERROR_JOINT_LIMIT", "ERROR_SINGULARITY", "ArmParams", "SimArmModel"]
 
@@ -89,37 +89,13 @@ class SimArmModel:
         self._p = params
         self.ap = np.array([float(getattr(params, k)) for k in kern.PARAM_FIELDS])
 
-    @property
-    def q(self) -> list[float]:
-        """Joint angles (deg)."""
-        return self._q.tolist()
-
-    @property
-    def qdot(self) -> list[float]:
-        """Joint rates (deg/s)."""
-        return self._qd.tolist()
-
-    @property
-    def vel_cmd(self) -> list[float]:
-        """The velocity command in force (deg/s)."""
-        return self._vel_cmd.tolist()
-
-    @property
-    def target(self) -> list[float]:
-        """The position mode's target (deg)."""
-        return self._target.tolist()
-
-    @property
-    def lo(self) -> list[float]:
-        return self.lims[0].tolist()
-
-    @property
-    def hi(self) -> list[float]:
-        return self.lims[1].tolist()
-
-    @property
-    def vmax(self) -> list[float]:
-        return self.lims[2].tolist()
+    q = listed("_q", doc="Joint angles (deg).")
+    qdot = listed("_qd", doc="Joint rates (deg/s).")
+    vel_cmd = listed("_vel_cmd", doc="The velocity command in force (deg/s).")
+    target = listed("_target", doc="The position mode's target (deg).")
+    lo = listed("lims", 0, "Lower joint limits (deg).")
+    hi = listed("lims", 1, "Upper joint limits (deg).")
+    vmax = listed("lims", 2, "Joint speed limits (deg/s).")
 
     @property
     def mode(self) -> str:

@@ -39,3 +39,12 @@ def vector(array: str, i: int, n: int, doc: str | None = None,
         arr(self)[i:i + n] = v
 
     return property(get, put if settable else None, doc=doc)
+
+
+def listed(array: str, row: int | None = None, doc: str | None = None) -> property:
+    """The instance's array attribute ``array`` (or its row ``row``) as a list of floats,
+    read-only (the kernels write it)."""
+    arr = attrgetter(array)
+    if row is None:
+        return property(lambda self: arr(self).tolist(), doc=doc)
+    return property(lambda self: arr(self)[row].tolist(), doc=doc)
