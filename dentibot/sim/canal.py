@@ -356,9 +356,13 @@ class Canal:
         line in a tapered lumen, bent by end loads, meets the walls there first), each with
         the wall stiffness of the slices that penetrate in its half. The file is a tapered
         cantilever clamped at the shank (:meth:`NiTiFile.compliance_mm_n`), on a tooth whose
-        support adds the same compliance to every pair (``support_mm_per_n``); where it
-        touches, the wall's penetration is what the bending leaves (a two-contact linear
-        complementarity problem: :func:`dentibot.sim.canal_walls.wall_loads`). A file crossing
+        support adds the same compliance to every pair (``support_mm_per_n``): the loads
+        ``lambda_j`` (along the inward normal ``-n_j``) bend it, and where it touches the
+        wall's penetration is what the bending leaves,
+        ``lambda_j / k_j = pen_j - sum_k c(j, k) (n_j . n_k) lambda_k``, with ``lambda >= 0``
+        and no penetration where there is no load (a two-contact linear complementarity
+        problem, solved by active sets: a contact the bending presses into the wall joins, one
+        that would pull leaves; :func:`dentibot.sim.canal_walls.wall_loads`). A file crossing
         the canal's axis (a handpiece tilted from a tilted canal) is pushed one way near the
         orifice and the other way at the tip: a couple, whose moment about the tip turns the
         handpiece towards the canal's direction under admittance control (thesis 4.4), and

@@ -162,7 +162,7 @@ def interact(st: np.ndarray, cp: np.ndarray, R: np.ndarray, h: np.ndarray, s: np
     i1 = min(i_tip, int(cp[_NSTRAIGHT]))
     nsum = 0.0
     if i1 > i0:
-        # the walls' lateral loads on the straight part (Canal._lateral)
+        # the walls' lateral loads on the straight part (see Canal.interact)
         sup = cp[_SUPPORT]
         total, fu, fv, mu, mv, d = wall_loads(
             s[i0:i1], g[: i1 - i0], au, av, eu, ev, s_tip, cp[_WALL_K] * ds, sup,

@@ -1,6 +1,6 @@
 """The canal walls' lateral loads on the straight part of a file, compiled (numba).
 
-The model is :meth:`dentibot.sim.canal.Canal._lateral`'s (its docstring derives it): the
+The model is :meth:`dentibot.sim.canal.Canal.interact`'s (its docstring derives it): the
 undeformed file is a straight line from the handpiece's clamp, offset ``e(s)`` from the
 canal's centreline (a complex number in the canal's (u, v) plane, linear in depth ``s``); the
 file touches the walls at two places at most, the ends of its part in the canal, each with the
