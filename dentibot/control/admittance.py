@@ -26,12 +26,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dentibot.control.joint_rate_kernels import joint_step
+from dentibot.control.admittance_kernels import command, filter_step
 from dentibot.control.kinematics import WRIST_CENTRE_FRAME, Meca500, SingularityMeasure
 from dentibot.control.limits import JointLimiter, LimitReport, guarded_joints
 from dentibot.errors import ConfigError
 
 INF = math.inf
+_ZERO6 = np.zeros(6)
 DEFAULT_TS = 0.002  # s, 500 Hz (thesis: ts = 0.002)
 AXES = ("x", "y", "z", "rx", "ry", "rz")
 
@@ -146,12 +147,13 @@ class AdmittanceFilter:
         self.v[:] = 0.0
         self._f_prev[:] = 0.0
 
-    def step(self, f: np.ndarray) -> np.ndarray:
-        f = np.asarray(f, dtype=float)
-        v = self._a * (f + self._f_prev) - self._c * self.v
-        self._f_prev = f.copy()
-        self.v = v
-        return v
+    def step(self, f: np.ndarray, fz: float = 0.0) -> np.ndarray:
+        """Advance one period with the wrench ``f`` plus ``fz`` along z
+        (:func:`~dentibot.control.admittance_kernels.filter_step`); the new twist (a copy)."""
+        out = np.empty(6)
+        filter_step(self._a, self._c, self.v, self._f_prev, np.asarray(f, dtype=float),
+                    float(fz), out)
+        return out
 
 
 @dataclass(frozen=True)
@@ -194,11 +196,18 @@ class AdmittanceController:
         self._half_ts_deg = math.degrees(0.5 * self.ts)
         self._q_lo = self.robot.joint_limits_deg[:, 0].copy()
         self._q_hi = self.robot.joint_limits_deg[:, 1].copy()
+        self._set_ref(self.ref_point_h_mm)
+
+    def _set_ref(self, ref_point_h_mm) -> None:
+        self.ref_point_h_mm = ref_point_h_mm
+        #: the reference point as the kernels take it (mm, {H}; the tip when None)
+        self.ref_h = np.zeros(3) if ref_point_h_mm is None else \
+            np.array(ref_point_h_mm, dtype=float)
 
     def set_params(self, params: AdmittanceParams, ref_point_h_mm=None) -> None:
         """Switch mode (e.g. dragging -> self-alignment): the filter restarts from rest."""
         self.params = params
-        self.ref_point_h_mm = ref_point_h_mm
+        self._set_ref(ref_point_h_mm)
         self._filter = AdmittanceFilter(params, self.ts)
         self._w_prev[:] = 0.0
 
@@ -212,25 +221,25 @@ class AdmittanceController:
         return self.robot.tool_jacobian(q_deg, self.ref_point_h_mm, with_frames=True)
 
     def step(self, q_deg, wrench: np.ndarray, kin=None,
-             feedforward: np.ndarray | None = None) -> JointCommand:
-        """Advance one period from the joint angles ``q_deg`` with the wrench (N, N*m).
+             feedforward: np.ndarray | None = None, fz_n: float = 0.0) -> JointCommand:
+        """Advance one period from the joint angles ``q_deg`` with the wrench (N, N*m) plus
+        ``fz_n`` along z_H (the desired insertion force, f_d of 4.4)
+        (:func:`~dentibot.control.admittance_kernels.command`).
 
         ``kin`` is ``self.kinematics(q_deg)`` if the caller already has it. ``feedforward``
         (mm/s, rad/s in {H} at the reference point) is added to the admittance's twist, after
         the filter: the motion of what the tool is in contact with (hybrid position/force
         control: the tracked tooth's velocity), so that the force law only has to correct
         the remainder."""
-        twist = self._filter.step(wrench)
-        if feedforward is not None:
-            twist = twist + feedforward
-        robot, lim = self.robot, self.limiter
+        robot, lim, filt = self.robot, self.limiter, self._filter
         jh, frames = kin if kin is not None else self.kinematics(q_deg)
-        q_next, qdot, sing, s_scale, speed_scale, guarded = joint_step(
-            jh, twist, frames, np.asarray(q_deg, dtype=float), self._w_prev, self._half_ts_deg,
-            self._q_lo, self._q_hi, self.singular_sigma, robot.elbow_offset_rad,
-            WRIST_CENTRE_FRAME, lim.thresholds, lim.lo_rad, lim.hi_rad, lim.vmax_rad_s,
-            lim.margin_rad, lim.ts)
-        self._w_prev = qdot
+        twist, q_next, qdot, sing, s_scale, speed_scale, guarded = command(
+            filt._a, filt._c, filt.v, filt._f_prev, np.asarray(wrench, dtype=float),
+            float(fz_n), _ZERO6 if feedforward is None else
+            np.asarray(feedforward, dtype=float), jh, frames, np.asarray(q_deg, dtype=float),
+            self._w_prev, self._half_ts_deg, self._q_lo, self._q_hi, self.singular_sigma,
+            robot.elbow_offset_rad, WRIST_CENTRE_FRAME, lim.thresholds, lim.lo_rad,
+            lim.hi_rad, lim.vmax_rad_s, lim.margin_rad, lim.ts)
         report = LimitReport(s_scale, speed_scale, guarded_joints(guarded),
                              SingularityMeasure(*sing))
         return JointCommand(q_next, np.degrees(qdot), twist, report)

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dentibot.control import canal_axis_kernels as ak
 from dentibot.control.filebeam import FileBeam
 from dentibot.errors import ConfigError
 
@@ -64,88 +65,70 @@ class AxisServoParams:
 
 
 class CanalAxisServo:
-    """The orientation loop of the module docstring for one file, stepped every period."""
+    """The orientation loop of the module docstring for one file, stepped every period (its
+    state in the arrays of :mod:`dentibot.control.canal_axis_kernels`, whose kernels the
+    methods call)."""
 
     def __init__(self, beam: FileBeam, params: AxisServoParams = AxisServoParams(),
                  ts: float = 0.002) -> None:
         self.beam = beam
         self.p = params
         self.ts = ts
-        self._a_tare = ts / (params.tare_filter_s + ts)
-        self._a = ts / (params.filter_s + ts)
-        self._max_rate = math.radians(params.max_rate_deg_s)
-        self._hold = math.radians(params.hold_deg)
-        self._stop = math.radians(params.stop_deg)
-        self.reset()
+        par = np.empty(len(ak.PARAM_FIELDS))
+        par[ak.P_A_TARE] = ts / (params.tare_filter_s + ts)
+        par[ak.P_A_LOAD] = ts / (params.filter_s + ts)
+        par[ak.P_MAX_RATE] = math.radians(params.max_rate_deg_s)
+        par[ak.P_HOLD] = math.radians(params.hold_deg)
+        par[ak.P_STOP] = math.radians(params.stop_deg)
+        par[ak.P_GAIN] = params.gain_per_s
+        par[ak.P_MIN_DEPTH] = params.min_depth_mm
+        self.par = par
+        self.st = np.zeros(len(ak.STATE_FIELDS))
+        self._beam = (float(beam.length_mm), *beam.integrals)
 
     def reset(self) -> None:
-        self._tare = (0.0, 0.0, 0.0, 0.0)  # fx, fy (N), mx, my (N*m) out of the canal
-        self._tared = False
-        self._loads = None                 # filtered fx, fy (N), Gx, Gy (N*mm) in the canal
-        #: the canal's direction's tilt from the tool axis, (x, y) in {H} (rad, small angle)
-        self.tilt = np.zeros(2)
+        """Back to the start: no tare taken, no loads, no tilt."""
+        self.st[:] = 0.0
+
+    @property
+    def tilt(self) -> np.ndarray:
+        """The canal's direction's tilt from the tool axis, (x, y) in {H} (rad, small angle):
+        a view on the state (assigning writes it)."""
+        return self.st[ak.S_TILT:ak.S_TILT + 2]
+
+    @tilt.setter
+    def tilt(self, value) -> None:
+        self.st[ak.S_TILT:ak.S_TILT + 2] = value
 
     @property
     def angle_rad(self) -> float:
         """The misalignment between the tool axis and the canal's estimated direction."""
-        return math.atan(math.hypot(self.tilt[0], self.tilt[1]))
+        return ak.angle_rad(self.st)
 
     def step(self, depth_mm: float | None, wrench_h) -> None:
-        """Take one period's depth (mm, None when unknown) and wrench at the tip in {H}.
-        (Four numbers a period: plain floats, no numpy per-call overhead.)"""
-        w = (float(wrench_h[0]), float(wrench_h[1]), float(wrench_h[3]), float(wrench_h[4]))
-        if depth_mm is None or depth_mm < 0.0:
-            a = 1.0 if not self._tared else self._a_tare
-            self._tare = tuple(t + a * (x - t) for x, t in zip(w, self._tare))
-            self._tared = True
-            self._loads = None
-            self.tilt = np.zeros(2)
-            return
-        if depth_mm < self.p.min_depth_mm:
-            self._loads = None
-            self.tilt = np.zeros(2)
-            return
-        t = self._tare
-        fx, fy = w[0] - t[0], w[1] - t[1]
-        mx, my = (w[2] - t[2]) * 1e3, (w[3] - t[3]) * 1e3
-        x = (fx, fy, -my, mx)              # F, and z x M: the loads' moment arms (N*mm)
-        loads = self._loads or (0.0, 0.0, 0.0, 0.0)   # they build up from zero in the canal
-        a = self._a
-        self._loads = loads = tuple(v + a * (u - v) for u, v in zip(x, loads))
-        self.tilt = self.chord_tilt(depth_mm, loads[:2], loads[2:])
+        """Take one period's depth (mm, None when unknown) and wrench at the tip in {H}
+        (:func:`~dentibot.control.canal_axis_kernels.step`)."""
+        known = depth_mm is not None
+        ak.step(self.st, self.par, float(depth_mm) if known else 0.0, known,
+                np.asarray(wrench_h, dtype=float), *self._beam)
 
     def chord_tilt(self, depth_mm: float, force_n, arms_nmm) -> np.ndarray:
         """The tilt (rad, x and y in {H}) of the chord of the file's part in a canal
         ``depth_mm`` deep under the lateral force ``force_n`` and the loads' moment arms
-        ``arms_nmm`` (= z x M about the tip): steps 2-3 of the module docstring."""
-        d = float(depth_mm)
-        b = self.beam
-        c00, c0d, cdd = b.compliance_mm_n(0.0, 0.0), b.compliance_mm_n(0.0, d), \
-            b.compliance_mm_n(d, d)
+        ``arms_nmm`` (= z x M about the tip): steps 2-3 of the module docstring
+        (:func:`~dentibot.control.canal_axis_kernels.chord_tilt`)."""
         out = np.empty(2)
-        for i in range(2):
-            p_o = float(arms_nmm[i]) / d
-            p_t = float(force_n[i]) - p_o
-            out[i] = ((c00 - c0d) * p_t + (c0d - cdd) * p_o) / d
+        ak.chord_tilt(float(depth_mm), float(force_n[0]), float(force_n[1]),
+                      float(arms_nmm[0]), float(arms_nmm[1]), *self._beam, out)
         return out
 
     def twist(self) -> np.ndarray | None:
         """The rotation rate (rad/s in {H}, about the tip) that turns the tool axis towards the
         canal, as a twist [0, 0, 0, wx, wy, 0]; None while there is nothing to turn."""
-        tx, ty = self.tilt
-        if tx == 0.0 and ty == 0.0:
-            return None
-        k = self.p.gain_per_s
-        wx, wy = -k * ty, k * tx           # z x (tx, ty, 1): turn z towards the chord
-        n = math.hypot(wx, wy)
-        if n > self._max_rate:
-            wx, wy = wx * self._max_rate / n, wy * self._max_rate / n
-        return np.array((0.0, 0.0, 0.0, wx, wy, 0.0))
+        out = np.empty(6)
+        return out if ak.twist(self.st, self.par, out) else None
 
     def feed_scale(self) -> float:
         """The factor (0..1) on the insertion force: 1 below ``hold_deg`` of misalignment, 0
         from ``stop_deg`` (the file is not pushed deeper while bent through the tilt)."""
-        a = self.angle_rad
-        if a <= self._hold:
-            return 1.0
-        return max(0.0, (self._stop - a) / (self._stop - self._hold))
+        return ak.feed_scale(self.st, self.par)

@@ -21,6 +21,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from numba import njit
+
 from dentibot.errors import ConfigError
 
 #: Torsional strength of a NiTi file (thesis eq 5.5, ref [37]): 6.20 Ncm.
@@ -28,21 +30,26 @@ FILE_STRENGTH_MNM = 62.0
 #: Handpiece motor: gear ratio and torque constant (thesis 5.1).
 GEAR_RATIO = 67.0
 KM_MNM_PER_A = 16.0
+#: Below this motor speed (rpm) the file counts as still: no friction current is removed.
+MOVING_RPM = 0.5
 
 
+@njit(cache=True)
 def file_torque_from_current(current_a: float, efficiency: float = 1.0,
                              km_mnm_per_a: float = KM_MNM_PER_A, gear_ratio: float = GEAR_RATIO) -> float:
     """File torque (mNm) from motor current (A): ``T = Km I GR eta`` (eq 5.4-5.5)."""
     return current_a * km_mnm_per_a * gear_ratio * efficiency
 
 
+@njit(cache=True)
 def file_torque_estimate_mnm(current_a: float, velocity_rpm: float, efficiency: float = 1.0,
                              friction_current_a: float = 0.0, km_mnm_per_a: float = KM_MNM_PER_A,
-                             gear_ratio: float = GEAR_RATIO, moving_rpm: float = 0.5) -> float:
+                             gear_ratio: float = GEAR_RATIO, moving_rpm: float = MOVING_RPM) -> float:
     """File torque (mNm) from the motor current with the no-load (friction) current removed:
     ``T = (I - I_f sign(w)) Km GR eta`` (eq 5.4-5.5 plus friction; ``sign(w)`` is 0 below
-    ``moving_rpm``). With ``efficiency = 1`` and no friction this is eq 5.4-5.5 as printed."""
-    sgn = (velocity_rpm > moving_rpm) - (velocity_rpm < -moving_rpm)
+    ``moving_rpm``). With ``efficiency = 1`` and no friction this is eq 5.4-5.5 as printed.
+    (Compiled: the control tick's estimate calls it inside its kernel.)"""
+    sgn = 1.0 if velocity_rpm > moving_rpm else (-1.0 if velocity_rpm < -moving_rpm else 0.0)
     return file_torque_from_current(current_a - friction_current_a * sgn, efficiency,
                                     km_mnm_per_a, gear_ratio)
 
@@ -126,3 +133,16 @@ class FeedrateController:
         fz_star = p.kp_n_per_mnm * (p.tau_d_mnm - tau_mnm) - p.kd_n_s_per_mnm * self._dtau
         fz = min(max(fz_star, p.fz_min_n), p.fz_max_n)
         return FeedrateOutput(fz_star, fz, fz_star < p.reversal_threshold_n)
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) the two compiled torque laws for the argument lists
+    their Python callers pass (each list of omitted defaults is a signature of its own to
+    numba). Called once, at import."""
+    file_torque_from_current(1.0, 1.0)
+    file_torque_from_current(1.0, 1.0, 16.0, 67.0)
+    file_torque_estimate_mnm(0.1, 100.0, 1.0, 0.0)
+    file_torque_estimate_mnm(0.1, 100.0, 1.0, 0.0, 16.0, 67.0)
+
+
+warm_up()      # at import: before any device streams or loop runs

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dentibot.control.linalg import as_rotation_stack, column_scaled_condition, pose_data, readonly
+from dentibot.control.wrench_kernels import external_wrench, gravity_wrench, transform_wrench
 from dentibot.errors import ConfigError, IdentificationError
 
 #: Standard gravity (m/s^2), to turn the identified weight into a mass.
@@ -111,18 +112,23 @@ class GravityModel:
     def gravity_wrench(self, R_0_6: np.ndarray) -> np.ndarray:
         """Wrench in {S} that the tool's weight produces at flange orientation 0R_6 (eq 4.15).
 
-        ``[f_g; r x f_g]`` with f_g = Rz(th)^T 0R_6^T (0, 0, -g): N and N*m, shape (6,).
+        ``[f_g; r x f_g]`` with f_g = Rz(th)^T 0R_6^T (0, 0, -g): N and N*m, shape (6,)
+        (:func:`~dentibot.control.wrench_kernels.gravity_wrench`).
         """
-        return self._gain @ R_0_6[2]
+        e = np.asarray(R_0_6, dtype=float)[2]
+        return gravity_wrench(self._gain, e[0], e[1], e[2])
 
     def external_wrench(self, measured: np.ndarray, R_0_6: np.ndarray) -> np.ndarray:
         """External wrench in {S}, about the sensor origin (eq 4.18), N and N*m, shape (6,).
 
         ``f_e = f - f0 - f_g`` and ``tau_e = tau - tau0 - r x f_g``. The torque rows printed
         in eq 4.19 are garbled (they subtract tau0 from forces and use undefined g_x, g_y,
-        g_z); this is the form eq 4.18 intends.
+        g_z); this is the form eq 4.18 intends
+        (:func:`~dentibot.control.wrench_kernels.external_wrench`).
         """
-        return measured - self._offset - self._gain @ R_0_6[2]
+        e = np.asarray(R_0_6, dtype=float)[2]
+        return external_wrench(np.asarray(measured, dtype=float), self._offset, self._gain,
+                               e[0], e[1], e[2])
 
 
 @dataclass(frozen=True, eq=False)
@@ -339,5 +345,6 @@ class WrenchTransform:
         return cls(R_H_S=R_6_H.T @ R_6_S, q_S_mm=R_6_S.T @ q_6)
 
     def apply(self, wrench_S: np.ndarray) -> np.ndarray:
-        """Wrench about q in {H} components (N, N*m) from a wrench about p in {S}."""
-        return self.matrix @ wrench_S
+        """Wrench about q in {H} components (N, N*m) from a wrench about p in {S}
+        (:func:`~dentibot.control.wrench_kernels.transform_wrench`)."""
+        return transform_wrench(self.matrix, np.asarray(wrench_S, dtype=float))

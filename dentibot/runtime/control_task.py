@@ -20,7 +20,6 @@ import structlog
 
 from dentibot.control.admittance import SELF_ALIGNMENT, AdmittanceController
 from dentibot.control.kinematics import Meca500
-from dentibot.control.tick import forward_chain
 from dentibot.control.wrench import GravityModel
 from dentibot.errors import DentibotError, DeviceFault
 from dentibot.runtime.clock import Clock, DeadlineStats, realtime_policy
@@ -255,10 +254,11 @@ class Runtime:
         return est, findings
 
     def _estimate(self, q: np.ndarray, raw: np.ndarray, m) -> Estimate:
-        self.chain, self.r_0_6 = forward_chain(self.admittance, q)
         to_h = self._to_h[self._ref or "B"] if self.gravity is not None else None
-        return estimate(q, raw, m, self.chain, self.r_0_6, self.kin, self.gravity, to_h,
-                        self.cfg.handpiece, self.ctx.depth_ref)
+        est, s = estimate(q, raw, m, self.admittance, self.gravity, to_h, self.cfg.handpiece,
+                          self.ctx.depth_ref)
+        self.chain, self.r_0_6 = s.chain, s.r_0_6
+        return est
 
     def set_tool_tip(self, tip_6_mm) -> None:
         """Use a new tool tip 6p_H (TCP calibration) from now on: kinematics, the {S}->{H}

@@ -8,11 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from dentibot.control.depth import depth_along
-from dentibot.control.feedrate import file_torque_estimate_mnm
-from dentibot.control.tick import external_wrench_h
+from dentibot.control.tick import Sensed, sense
 from dentibot.io.interfaces import Arm, AuxIO, ForceSensor, Handpiece, PatientTracker
-
-_ZERO6 = np.zeros(6)
 
 
 @dataclass
@@ -62,15 +59,15 @@ class MotorView:
         self.position_deg = est.motor_pos_deg
 
 
-def estimate(q: np.ndarray, raw: np.ndarray, m, chain, r_0_6: np.ndarray, kin, gravity, to_h,
-             handpiece, depth_ref) -> Estimate:
-    """Step 2 of the tick: the external wrench at the reference point in {H} (zero until a
-    gravity model is known), the file torque from the motor current (eq 5.4-5.5), the tip and
-    tool axis in {0}, and the depth along ``depth_ref`` = (orifice point, canal axis)."""
-    wrench_h = _ZERO6 if gravity is None else external_wrench_h(gravity, to_h, raw, r_0_6)
-    tau = file_torque_estimate_mnm(m.current_a, m.velocity_rpm, handpiece.efficiency,
-                                   handpiece.friction_current_a)
-    tip, axis = kin.tool_tip_axis(chain[1])
-    depth = None if depth_ref is None else depth_along(tip, depth_ref)
-    return Estimate(q, raw, wrench_h, float(np.linalg.norm(wrench_h)), tau,
-                    m.velocity_rpm, m.current_a, m.position_deg, tip, axis, depth)
+def estimate(q: np.ndarray, raw: np.ndarray, m, admittance, gravity, to_h, handpiece,
+             depth_ref) -> tuple[Estimate, Sensed]:
+    """Step 2 of the tick: the external wrench at the admittance's reference point in {H}
+    (zero until a gravity model is known), the file torque from the motor current (eq
+    5.4-5.5), the tip and tool axis in {0} (:func:`~dentibot.control.tick.sense`: one
+    compiled call), and the depth along ``depth_ref`` = (orifice point, canal axis). Also
+    returns the tick's chain (:class:`~dentibot.control.tick.Sensed`)."""
+    s = sense(admittance, q, raw, m.current_a, m.velocity_rpm, gravity, to_h,
+              handpiece.efficiency, handpiece.friction_current_a)
+    depth = None if depth_ref is None else depth_along(s.tip_0, depth_ref)
+    return Estimate(q, raw, s.wrench_h, s.force_norm_n, s.file_torque_mnm, m.velocity_rpm,
+                    m.current_a, m.position_deg, s.tip_0, s.axis_0, depth), s

@@ -226,6 +226,7 @@ def warm_up() -> None:
     step(ws, wp, F, a.kin._dh_arr, a.ast, a.ap, a.lims, a._q, a._qd, a._vel_cmd, a._target,
          a._queue_t, a._queue_v, c.st, c.cp, c.R, c._h, c.s, c.kappa, b0, b1, b2, c._out,
          h.hs, h.hp, h.noise, s.ss, s.sp, s.noise, 0.002, 0.002)
+    sense(ws, s.sp, F, c._out, 0.0, s.ss, s.noise)
     clear_interaction(np.zeros(len(canal.OUT_FIELDS)))
 
 

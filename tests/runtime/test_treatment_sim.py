@@ -306,14 +306,14 @@ async def test_the_runtime_runs_the_tick_chain_of_control_tick(monkeypatch):
 
     def wrench(*a):
         calls["wrench"] += 1
-        return tick.external_wrench_h(*a)
+        return tick.sense(*a)
 
     def command(*a):
         cmd = tick.admittance_command(*a)
         calls["command"].append(cmd.qdot_deg_s.copy())
         return cmd
 
-    monkeypatch.setattr(estimate, "external_wrench_h", wrench)
+    monkeypatch.setattr(estimate, "sense", wrench)
     monkeypatch.setattr(ct, "admittance_command", command)
     h, rows = harness(seed=3)
     rt = h.runtime
