@@ -163,7 +163,16 @@ class JointCommand:
     q_target_deg: np.ndarray
     qdot_deg_s: np.ndarray
     twist: np.ndarray  # [mm/s x3, rad/s x3] in {H} at the reference point, before limits
-    limits: LimitReport
+    #: what the limiter did, as the kernel reports it: (singularity scale, speed scale,
+    #: per-joint guarded mask, the six singularity factors and rates); read as ``limits``
+    limited_by: tuple = field(repr=False)
+
+    @property
+    def limits(self) -> LimitReport:
+        """What the limiter changed this tick (built when asked: the tick does not)."""
+        s_scale, speed_scale, guarded, sing = self.limited_by
+        return LimitReport(s_scale, speed_scale, guarded_joints(guarded),
+                           SingularityMeasure(*sing))
 
     @property
     def twist_mm_deg(self) -> np.ndarray:
@@ -233,13 +242,11 @@ class AdmittanceController:
         the remainder."""
         robot, lim, filt = self.robot, self.limiter, self._filter
         jh, frames = kin if kin is not None else self.kinematics(q_deg)
-        twist, q_next, qdot, sing, s_scale, speed_scale, guarded = command(
+        twist, q_next, qdot_deg_s, sing, s_scale, speed_scale, guarded = command(
             filt._a, filt._c, filt.v, filt._f_prev, np.asarray(wrench, dtype=float),
             float(fz_n), _ZERO6 if feedforward is None else
             np.asarray(feedforward, dtype=float), jh, frames, np.asarray(q_deg, dtype=float),
             self._w_prev, self._half_ts_deg, self._q_lo, self._q_hi, self.singular_sigma,
             robot.elbow_offset_rad, WRIST_CENTRE_FRAME, lim.thresholds, lim.lo_rad,
             lim.hi_rad, lim.vmax_rad_s, lim.margin_rad, lim.ts)
-        report = LimitReport(s_scale, speed_scale, guarded_joints(guarded),
-                             SingularityMeasure(*sing))
-        return JointCommand(q_next, np.degrees(qdot), twist, report)
+        return JointCommand(q_next, qdot_deg_s, twist, (s_scale, speed_scale, guarded, sing))

@@ -13,6 +13,8 @@ Compiled at import, as :mod:`~dentibot.control.kinematics_kernels` explains.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -44,7 +46,7 @@ def command(a: np.ndarray, c: np.ndarray, v: np.ndarray, f_prev: np.ndarray,
     ``feedforward`` twist (zeros for none), then :func:`joint_step`; ``w_prev`` (the last
     joint rates, rad/s) is updated in place.
 
-    Returns ``(twist, q_next_deg, qdot_rad_s, sing, singularity scale, speed scale,
+    Returns ``(twist, q_next_deg, qdot_deg_s, sing, singularity scale, speed scale,
     guarded)``; ``twist`` is the filter's output plus the feedforward, before limits."""
     twist = np.empty(6)
     filter_step(a, c, v, f_prev, wrench, fz, twist)
@@ -53,9 +55,11 @@ def command(a: np.ndarray, c: np.ndarray, v: np.ndarray, f_prev: np.ndarray,
     q_next, qdot, sing, s_scale, speed_scale, guarded = joint_step(
         jh, twist, frames, q_deg, w_prev, half_ts_deg, q_lo, q_hi, singular_sigma,
         elbow_offset, wrist_frame, thresholds, lo_rad, hi_rad, vmax_rad_s, margin_rad, ts)
+    qdot_deg_s = np.empty(6)
     for i in range(6):
         w_prev[i] = qdot[i]
-    return twist, q_next, qdot, sing, s_scale, speed_scale, guarded
+        qdot_deg_s[i] = math.degrees(qdot[i])
+    return twist, q_next, qdot_deg_s, sing, s_scale, speed_scale, guarded
 
 
 def warm_up() -> None:

@@ -237,10 +237,11 @@ class Runtime:
         self.ctx.pedal = bool(aux.pedal) if aux is not None else False
         if aux is not None:
             self.treatment.estop_active = aux.estop
-        findings = self.supervisor.check_inputs(k, js, w, m, aux)
+        q, raw = np.asarray(js.q_deg, dtype=float), w.as_array()
+        findings = self.supervisor.check_inputs(k, js, w, m, aux, raw, q)
         if any(f.kind.startswith("nonfinite") for f in findings):
             return None, findings
-        est = self._estimate(np.asarray(js.q_deg, dtype=float), w.as_array(), m)
+        est = self._estimate(q, raw, m)
         tooth = self.ctx.tooth and self.ctx.tooth.tick(strings, self.chain, self.ctx, est)
         findings += [tooth] if tooth else []
         if not findings:
@@ -255,9 +256,8 @@ class Runtime:
 
     def _estimate(self, q: np.ndarray, raw: np.ndarray, m) -> Estimate:
         to_h = self._to_h[self._ref or "B"] if self.gravity is not None else None
-        est, s = estimate(q, raw, m, self.admittance, self.gravity, to_h, self.cfg.handpiece,
-                          self.ctx.depth_ref)
-        self.chain, self.r_0_6 = s.chain, s.r_0_6
+        est, self.chain, self.r_0_6 = estimate(q, raw, m, self.admittance, self.gravity, to_h,
+                                               self.cfg.handpiece, self.ctx.depth_ref)
         return est
 
     def set_tool_tip(self, tip_6_mm) -> None:

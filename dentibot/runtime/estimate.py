@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dentibot.control.depth import depth_along
-from dentibot.control.tick import Sensed, sense
+from dentibot.control.tick import sense
 from dentibot.io.interfaces import Arm, AuxIO, ForceSensor, Handpiece, PatientTracker
 
 
@@ -60,14 +60,14 @@ class MotorView:
 
 
 def estimate(q: np.ndarray, raw: np.ndarray, m, admittance, gravity, to_h, handpiece,
-             depth_ref) -> tuple[Estimate, Sensed]:
+             depth_ref) -> tuple[Estimate, tuple, np.ndarray]:
     """Step 2 of the tick: the external wrench at the admittance's reference point in {H}
     (zero until a gravity model is known), the file torque from the motor current (eq
     5.4-5.5), the tip and tool axis in {0} (:func:`~dentibot.control.tick.sense`: one
     compiled call), and the depth along ``depth_ref`` = (orifice point, canal axis). Also
-    returns the tick's chain (:class:`~dentibot.control.tick.Sensed`)."""
+    returns the tick's chain (J_H, frames) and flange orientation 0R_6."""
     s = sense(admittance, q, raw, m.current_a, m.velocity_rpm, gravity, to_h,
               handpiece.efficiency, handpiece.friction_current_a)
     depth = None if depth_ref is None else depth_along(s.tip_0, depth_ref)
     return Estimate(q, raw, s.wrench_h, s.force_norm_n, s.file_torque_mnm, m.velocity_rpm,
-                    m.current_a, m.position_deg, s.tip_0, s.axis_0, depth), s
+                    m.current_a, m.position_deg, s.tip_0, s.axis_0, depth), s.chain, s.r_0_6

@@ -9,10 +9,11 @@ a fault (file and arm stopped in the same tick).
 
 from __future__ import annotations
 
-import collections
-import math
 from dataclasses import dataclass
 
+import numpy as np
+
+from dentibot.runtime import supervisor_kernels as sk
 from dentibot.runtime.finding import Finding
 
 
@@ -102,20 +103,30 @@ class FractureObserver:
     Only while the file is held or pushed in (its depth not decreasing over the window): a
     file drawn out of a canal shaped to its own size loses its wall contact as quickly as a
     broken one loses its load, so a drop while withdrawing says nothing (a fracture on the
-    way out is left to the report of the broken length)."""
+    way out is left to the report of the broken length).
+
+    The detection is compiled (:func:`~dentibot.runtime.supervisor_kernels.fracture`) over
+    this object's window and state arrays."""
 
     def __init__(self, ts: float, limits: ObserverLimits) -> None:
         self.ts, self.lim = ts, limits
         n_ref = max(1, round(limits.fracture_reference_s / ts))
         self.n_recent = max(1, round(limits.fracture_recent_s / ts))
-        self._hist: collections.deque[float] = collections.deque(maxlen=n_ref + self.n_recent)
-        self._depths: collections.deque = collections.deque(maxlen=n_ref + self.n_recent)
-        self.free_mnm = 0.0
-        self._free_n = 0
+        self._st = np.zeros(len(sk.FRACTURE_FIELDS))
+        self._ring = np.zeros((n_ref + self.n_recent, 3))   # torque, depth, depth known
+        self._lim = np.array([limits.fracture_loaded_mnm, limits.fracture_share,
+                              limits.fracture_free_band_mnm, limits.fracture_min_depth_mm,
+                              limits.fracture_withdraw_mm])
+        self._out = np.zeros(2)
+
+    @property
+    def free_mnm(self) -> float:
+        """The free-running torque learnt so far (mNm)."""
+        return float(self._st[sk.F_FREE])
 
     def reset(self) -> None:
-        self._hist.clear()
-        self._depths.clear()
+        """Empty the window (the free-running torque stays)."""
+        self._st[sk.F_HEAD] = self._st[sk.F_COUNT] = 0.0
 
     def check(self, forward_rpm: float | None, rpm: float, torque_mnm: float,
               depth_mm: float | None) -> list[Finding]:
@@ -124,64 +135,48 @@ class FractureObserver:
         lim = self.lim
         at_speed = forward_rpm is not None and forward_rpm > 0.0 and \
             abs(rpm - forward_rpm) < lim.speed_tolerance_share * forward_rpm
-        if not at_speed:
-            self.reset()
+        known = depth_mm is not None
+        if not sk.fracture(self._st, self._ring, self._lim, self.n_recent, at_speed,
+                           float(torque_mnm), float(depth_mm) if known else 0.0, known,
+                           self._out):
             return []
-        if depth_mm is not None and depth_mm < -1.0 and self._free_n < 10_000:
-            # outside the canal: the free-running torque (mean of up to 20 s of samples)
-            self._free_n += 1
-            self.free_mnm += (torque_mnm - self.free_mnm) / self._free_n
-        h, d = self._hist, self._depths
-        h.append(torque_mnm)
-        d.append(depth_mm)
-        if len(h) < h.maxlen or depth_mm is None or depth_mm < lim.fracture_min_depth_mm \
-                or d[0] is None or depth_mm < d[0] - lim.fracture_withdraw_mm:
-            return []
-        vals = list(h)
-        ref = vals[:-self.n_recent]
-        recent = vals[-self.n_recent:]
-        loaded = sum(ref) / len(ref) - self.free_mnm
-        now = sum(recent) / len(recent) - self.free_mnm
-        if loaded >= lim.fracture_loaded_mnm and \
-                now <= min(lim.fracture_share * loaded, lim.fracture_free_band_mnm):
-            self.reset()
-            return [Finding("fracture_suspected",
-                            f"file torque fell from {loaded + self.free_mnm:.1f} to "
-                            f"{now + self.free_mnm:.1f} mNm within "
-                            f"{1000 * self.n_recent * self.ts:.0f} ms at {depth_mm:.1f} mm deep, "
-                            f"the motor at {rpm:.0f} rpm: the file has probably broken")]
-        return []
+        free = self.free_mnm
+        loaded, now = self._out
+        return [Finding("fracture_suspected",
+                        f"file torque fell from {loaded + free:.1f} to "
+                        f"{now + free:.1f} mNm within "
+                        f"{1000 * self.n_recent * self.ts:.0f} ms at {depth_mm:.1f} mm deep, "
+                        f"the motor at {rpm:.0f} rpm: the file has probably broken")]
 
 
 class TipSpeedObserver:
     """The tip's measured speed (its kinematic position over the last ``window`` ticks)
     against a bound: what the arm does, not what it was told (a drifting force reading can
     drive it anywhere). Over a window, so that a joint sample that arrived a period late (real
-    time) does not read as a doubled speed."""
+    time) does not read as a doubled speed. (Compiled:
+    :func:`~dentibot.runtime.supervisor_kernels.tip_speed`.)"""
 
     window = 5
 
     def __init__(self, ts: float, limits: ObserverLimits) -> None:
         self.ts, self.lim = ts, limits
-        self._tips: collections.deque = collections.deque(maxlen=self.window + 1)
-        self._bad = 0
+        self._st = np.zeros(len(sk.TIP_FIELDS))
+        self._ring = np.zeros((self.window + 1, 3))
 
     def check(self, tip_0) -> list[Finding]:
         """``tip_0`` None: not watched this tick (the arm is scripted or stopped)."""
-        tips = self._tips
+        st = self._st
         if tip_0 is None:
-            tips.clear()
-            self._bad = 0
+            st[:] = 0.0
             return []
-        tips.append(tuple(tip_0))
-        if len(tips) < 2:
+        v = sk.tip_speed(st, self._ring, float(tip_0[0]), float(tip_0[1]), float(tip_0[2]),
+                         self.ts, self.lim.tip_speed_mm_s)
+        bad = st[sk.T_BAD]
+        if v < 0.0 or bad * self.ts < self.lim.persist_s:
             return []
-        v = math.dist(tips[0], tips[-1]) / ((len(tips) - 1) * self.ts)
-        self._bad = self._bad + 1 if v > self.lim.tip_speed_mm_s else 0
-        if self._bad * self.ts >= self.lim.persist_s:
-            return [Finding("tip_speed_measured",
-                            f"file tip moving at {v:.0f} mm/s (measured over "
-                            f"{1000 * (len(tips) - 1) * self.ts:.0f} ms) for "
-                            f"{1000 * self._bad * self.ts:.0f} ms: above "
-                            f"{self.lim.tip_speed_mm_s:g} mm/s")]
-        return []
+        n = int(st[sk.T_COUNT])
+        return [Finding("tip_speed_measured",
+                        f"file tip moving at {v:.0f} mm/s (measured over "
+                        f"{1000 * (n - 1) * self.ts:.0f} ms) for "
+                        f"{1000 * bad * self.ts:.0f} ms: above "
+                        f"{self.lim.tip_speed_mm_s:g} mm/s")]

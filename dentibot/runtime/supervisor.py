@@ -30,7 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dentibot.io.interfaces import WRENCH_SATURATED
+from dentibot.control.kinematics import WRIST_CENTRE_FRAME
+from dentibot.runtime import supervisor_kernels as sk
 from dentibot.runtime.finding import Finding
 from dentibot.runtime.observers import (
     FractureObserver,
@@ -39,7 +40,11 @@ from dentibot.runtime.observers import (
     TipSpeedObserver,
 )
 
-__all__ = ["Finding", "Freshness", "Supervisor", "SupervisorLimits", "non_finite"]
+__all__ = ["Finding", "Supervisor", "SupervisorLimits"]
+
+#: The names of the groups :func:`~dentibot.runtime.supervisor_kernels.inputs` checks for
+#: non-finite values, by its group number.
+_VALUE_GROUPS = {1: "wrench", 2: "joints", 3: "motor"}
 
 
 @dataclass(frozen=True)
@@ -72,55 +77,37 @@ class SupervisorLimits:
     tip_speed_cap_mm_s: float = 50.0
 
 
-class Freshness:
-    """Tracks the last tick at which each stream's ``seq`` changed."""
-
-    def __init__(self, bounds_periods: dict[str, int]) -> None:
-        self.bounds = dict(bounds_periods)
-        self._seq: dict[str, int] = {}
-        self._tick: dict[str, int] = {}
-
-    def reset(self) -> None:
-        self._seq.clear()
-        self._tick.clear()
-
-    def check(self, name: str, seq: int, tick: int) -> Finding | None:
-        last = self._seq.get(name)
-        if last is None or seq != last:
-            self._seq[name] = seq
-            self._tick[name] = tick
-            return None
-        age = tick - self._tick[name]
-        bound = self.bounds.get(name, 10)
-        if age > bound:
-            return Finding(f"stale_{name}",
-                           f"{name} stream: seq {seq} unchanged for {age} periods "
-                           f"(limit {bound})")
-        return None
-
-
-def non_finite(name: str, values) -> Finding | None:
-    for i, v in enumerate(values):
-        if not math.isfinite(v):
-            return Finding(f"nonfinite_{name}", f"{name}[{i}] = {v} (must be finite)")
-    return None
-
-
 class Supervisor:
-    """Stateful checks (freshness, jumps, disagreement timers) over the tick's data."""
+    """Stateful checks (freshness, jumps, disagreement timers) over the tick's data: the
+    detection compiled (:mod:`dentibot.runtime.supervisor_kernels`, over this object's
+    arrays), the wording of a finding here."""
 
     def __init__(self, stale_periods: dict[str, int], ts: float,
                  limits: SupervisorLimits | None = None) -> None:
-        self.lim = limits or SupervisorLimits()
+        lim = self.lim = limits or SupervisorLimits()
         self.ts = ts
-        self.freshness = Freshness(stale_periods)
-        self._last_force: tuple[float, float, float] | None = None
-        self._joint_bounds: tuple | None = None       # (limits array, margin, lo, hi floats)
-        self._disagree_ticks = 0
+        #: each stream's freshness bound (periods), in the order of ``sk.STREAMS``
+        self.bounds = np.array([float(stale_periods.get(n, 10)) for n in sk.STREAMS])
+        self._fresh = np.zeros((len(sk.STREAMS), len(sk.FRESH_FIELDS)))
+        self._last_force = np.zeros(4)          # fx, fy, fz, and whether one was kept
+        self._in_out = np.zeros(len(sk.INPUT_OUT_FIELDS))
+        self._disagree = np.zeros(1)            # periods the torque sources disagreed
+        self._est_lim = np.array([lim.torque_disagreement_mnm, lim.torque_disagreement_s,
+                                  lim.workspace_lateral_mm, lim.workspace_above_mm,
+                                  lim.workspace_past_wl_mm, lim.shoulder_min_mm, lim.elbow_min,
+                                  lim.wrist_min])
+        self._est_out = np.zeros(len(sk.ESTIMATE_OUT_FIELDS))
+        self._joint_bounds: tuple | None = None     # (limits array, lo, hi arrays)
+        self._cmd_out = np.zeros(1)
+        self._speed_limits: tuple | None = None     # (the list given, as an array)
         olim = ObserverLimits()
         self.spindle = SpindleObserver(ts, olim)
         self.fracture = FractureObserver(ts, olim)
         self.tip_speed = TipSpeedObserver(ts, olim)
+
+    def reset(self) -> None:
+        """Forget the streams' sequence numbers (a reconnection starts them again)."""
+        self._fresh[:] = 0.0
 
     def observe(self, file_cmd, m, est, near_patient: bool) -> list[Finding]:
         """The observers (:mod:`dentibot.runtime.observers`): the handpiece against its
@@ -134,94 +121,103 @@ class Supervisor:
                                      est.depth_mm),
                 *self.tip_speed.check(est.tip_0 if near_patient else None)]
 
-    def check_inputs(self, k: int, js, w, m, aux) -> list[Finding]:
+    def check_inputs(self, k: int, js, w, m, aux, wrench: np.ndarray | None = None,
+                     q_deg: np.ndarray | None = None) -> list[Finding]:
+        """The samples' checks (:func:`~dentibot.runtime.supervisor_kernels.inputs`);
+        ``wrench`` and ``q_deg``: the samples' values as float arrays, if the caller has
+        them already."""
+        if wrench is None:
+            wrench = w.as_array()
+        if q_deg is None:
+            q_deg = np.asarray(js.q_deg, dtype=float)
+        o = self._in_out
+        found = sk.inputs(self._fresh, self.bounds, self._last_force, k, js.seq, w.seq, m.seq,
+                          0 if aux is None else aux.seq, aux is not None, wrench, q_deg,
+                          float(m.current_a), float(m.velocity_rpm), float(m.position_deg),
+                          int(w.status), self.lim.ft_jump_n, o)
+        estop = aux is not None and aux.estop
+        if not (found or estop or m.fault):
+            return []
         out: list[Finding] = []
-        fr = self.freshness
-        for name, sample in (("arm", js), ("ft", w), ("motor", m), ("aux", aux)):
-            if sample is not None:
-                f = fr.check(name, sample.seq, k)
-                if f:
-                    out.append(f)
-        if aux is not None and aux.estop:
+        seqs = (js.seq, w.seq, m.seq, None if aux is None else aux.seq)
+        for i, name in enumerate(sk.STREAMS):
+            age = o[sk.O_STALE + i]
+            if age >= 0.0:
+                out.append(Finding(f"stale_{name}",
+                                   f"{name} stream: seq {seqs[i]} unchanged for {age:.0f} "
+                                   f"periods (limit {self.bounds[i]:.0f})"))
+        if estop:
             out.append(Finding("estop", "emergency stop pressed (aux input)"))
-        for name, vals in (("wrench", w.force_n + w.torque_nm), ("joints", js.q_deg),
-                           ("motor", (m.current_a, m.velocity_rpm, m.position_deg))):
-            f = non_finite(name, vals)
-            if f:
-                out.append(f)
-                return out
-        if w.status & WRENCH_SATURATED:
+        group = int(o[sk.O_BAD_GROUP])
+        if group:
+            name = _VALUE_GROUPS[group]
+            out.append(Finding(f"nonfinite_{name}", f"{name}[{int(o[sk.O_BAD_INDEX])}] = "
+                                                    f"{o[sk.O_BAD_VALUE]} (must be finite)"))
+            return out
+        if o[sk.O_SATURATED]:
             out.append(Finding("ft_saturated",
                                f"F/T reading saturated (status 0x{w.status:x}): force "
                                f"{np.round(w.force_n, 2).tolist()} N, torque "
                                f"{np.round(w.torque_nm, 4).tolist()} N*m"))
-        # plain floats: three components do not pay numpy's per-call overhead (every tick)
-        force = tuple(float(x) for x in w.force_n)
-        last = self._last_force
-        if last is not None:
-            jump = max(abs(force[0] - last[0]), abs(force[1] - last[1]),
-                       abs(force[2] - last[2]))
-            if jump > self.lim.ft_jump_n:
-                out.append(Finding("ft_jump", f"F/T force changed by {jump:.1f} N in one "
-                                              f"sample (limit {self.lim.ft_jump_n} N)"))
-        self._last_force = force
+        jump = o[sk.O_JUMP]
+        if jump >= 0.0:
+            out.append(Finding("ft_jump", f"F/T force changed by {jump:.1f} N in one "
+                                          f"sample (limit {self.lim.ft_jump_n} N)"))
         if m.fault:
             out.append(Finding("motor", m.fault))
         return out
 
     def check_estimate(self, est, kin_robot, frames, depth_ref, working_length_mm,
                        file_turning: bool) -> list[Finding]:
+        """The estimate's checks (:func:`~dentibot.runtime.supervisor_kernels.estimate_checks`):
+        the two torque sources, the workspace box, the joint ranges, the singularity
+        margins."""
         lim = self.lim
-        out: list[Finding] = []
-        # two torque sources: the sensor sees the canal's reaction about the file axis
-        if file_turning:
-            tau_ft = -1e3 * float(est.wrench_h[5])
-            diff = abs(est.file_torque_mnm - tau_ft)
-            if diff > lim.torque_disagreement_mnm:
-                self._disagree_ticks += 1
-                if self._disagree_ticks * self.ts > lim.torque_disagreement_s:
-                    out.append(Finding("torque_disagreement",
-                                       f"file torque from current {est.file_torque_mnm:.1f} "
-                                       f"mNm vs F/T {tau_ft:.1f} mNm: {diff:.1f} mNm apart for "
-                                       f"{self._disagree_ticks * self.ts:.2f} s (limit "
-                                       f"{lim.torque_disagreement_mnm} mNm, "
-                                       f"{lim.torque_disagreement_s} s)"))
-            else:
-                self._disagree_ticks = 0
-        else:
-            self._disagree_ticks = 0
-        if depth_ref is not None:
-            o, a = depth_ref
-            d = [est.tip_0[i] - o[i] for i in range(3)]
-            axial = d[0] * a[0] + d[1] * a[1] + d[2] * a[2]
-            lateral = math.sqrt(max(0.0, d[0] ** 2 + d[1] ** 2 + d[2] ** 2 - axial ** 2))
-            if lateral > lim.workspace_lateral_mm or axial < -lim.workspace_above_mm or \
-                    axial > working_length_mm + lim.workspace_past_wl_mm:
-                out.append(Finding("workspace",
-                                   f"file tip {lateral:.1f} mm sideways, {axial:.1f} mm deep "
-                                   f"(box: {lim.workspace_lateral_mm} mm sideways, "
-                                   f"-{lim.workspace_above_mm}..{working_length_mm + lim.workspace_past_wl_mm:.1f} mm)"))
-        q = est.q_deg
         limits = kin_robot.joint_limits_deg
         b = self._joint_bounds
-        if b is None or b[0] is not limits or b[1] != lim.joint_margin_deg:
-            b = self._joint_bounds = (limits, lim.joint_margin_deg,
-                                      [float(x) - lim.joint_margin_deg for x in limits[:, 0]],
-                                      [float(x) + lim.joint_margin_deg for x in limits[:, 1]])
-        q_lo, q_hi = b[2], b[3]
-        qf = q.tolist() if isinstance(q, np.ndarray) else [float(x) for x in q]
+        if b is None or b[0] is not limits:
+            b = self._joint_bounds = (limits, limits[:, 0] - lim.joint_margin_deg,
+                                      limits[:, 1] + lim.joint_margin_deg)
+        boxed = depth_ref is not None
+        (ox, oy, oz), (ax, ay, az) = depth_ref if boxed else ((0.0,) * 3, (0.0,) * 3)
+        tip = est.tip_0
+        q = est.q_deg if type(est.q_deg) is np.ndarray else np.asarray(est.q_deg, dtype=float)
+        o = self._est_out
+        bits = sk.estimate_checks(
+            self._disagree, self._est_lim, self.ts, bool(file_turning),
+            float(est.file_torque_mnm), float(est.wrench_h[5]), boxed, ox, oy, oz, ax, ay, az,
+            tip[0], tip[1], tip[2], float(working_length_mm), q, b[1], b[2], frames,
+            kin_robot.elbow_offset_rad, WRIST_CENTRE_FRAME, o)
+        if not bits:
+            return []
+        out: list[Finding] = []
+        if bits & sk.TORQUE_BIT:
+            t = self._disagree[0] * self.ts
+            out.append(Finding("torque_disagreement",
+                               f"file torque from current {est.file_torque_mnm:.1f} "
+                               f"mNm vs F/T {o[sk.E_TAU_FT]:.1f} mNm: {o[sk.E_DIFF]:.1f} mNm "
+                               f"apart for {t:.2f} s (limit "
+                               f"{lim.torque_disagreement_mnm} mNm, "
+                               f"{lim.torque_disagreement_s} s)"))
+        if bits & sk.WORKSPACE_BIT:
+            out.append(Finding("workspace",
+                               f"file tip {o[sk.E_LATERAL]:.1f} mm sideways, "
+                               f"{o[sk.E_AXIAL]:.1f} mm deep (box: "
+                               f"{lim.workspace_lateral_mm} mm sideways, "
+                               f"-{lim.workspace_above_mm}.."
+                               f"{working_length_mm + lim.workspace_past_wl_mm:.1f} mm)"))
         for i in range(6):
-            if qf[i] < q_lo[i] or qf[i] > q_hi[i]:
-                lo, hi = limits[:, 0], limits[:, 1]
+            if bits & (sk.JOINT_BIT << i):
                 out.append(Finding("joint_range", f"J{i + 1} = {q[i]:.2f} deg outside "
-                                                  f"{lo[i]:.0f}..{hi[i]:.0f} deg"))
-        s = kin_robot.singularity(q, frames=frames)
-        for name, value, bound, unit in (("shoulder", s.shoulder_mm, lim.shoulder_min_mm, " mm"),
-                                         ("elbow", s.elbow, lim.elbow_min, ""),
-                                         ("wrist", s.wrist, lim.wrist_min, "")):
-            if value < bound:
-                out.append(Finding("singularity", f"{name} singularity measure {value:.4f}"
-                                                  f"{unit} below the margin {bound:.4f}{unit}"))
+                                                  f"{limits[i, 0]:.0f}..{limits[i, 1]:.0f} deg"))
+        for name, bit, field, bound, unit in (
+                ("shoulder", sk.SHOULDER_BIT, sk.E_SHOULDER, lim.shoulder_min_mm, " mm"),
+                ("elbow", sk.ELBOW_BIT, sk.E_ELBOW, lim.elbow_min, ""),
+                ("wrist", sk.WRIST_BIT, sk.E_WRIST, lim.wrist_min, "")):
+            if bits & bit:
+                out.append(Finding("singularity", f"{name} singularity measure "
+                                                  f"{o[field]:.4f}{unit} below the margin "
+                                                  f"{bound:.4f}{unit}"))
         return out
 
     def check_command(self, qdot_deg_s, twist, speed_limits_deg_s,
@@ -229,18 +225,26 @@ class Supervisor:
         """The joint rates against their limits, and the file tip's commanded speed against
         the cap: relative to the tracked tooth when its motion is fed forward
         (``tooth_twist``, hybrid control), since the cap protects the patient from the file,
-        and a file that moves with a jerking tooth is not fast for the tooth."""
+        and a file that moves with a jerking tooth is not fast for the tooth
+        (:func:`~dentibot.runtime.supervisor_kernels.command_checks`)."""
+        sl = self._speed_limits
+        if sl is None or sl[0] is not speed_limits_deg_s:
+            sl = self._speed_limits = (speed_limits_deg_s,
+                                       np.asarray(speed_limits_deg_s, dtype=float))
+        tooth = tooth_twist is not None
+        bits = sk.command_checks(np.asarray(qdot_deg_s, dtype=float),
+                                 np.asarray(twist, dtype=float), sl[1], tooth,
+                                 np.asarray(tooth_twist, dtype=float) if tooth else sl[1],
+                                 self.lim.tip_speed_cap_mm_s, self._cmd_out)
+        if not bits:
+            return []
         out: list[Finding] = []
-        if isinstance(qdot_deg_s, np.ndarray):
-            qdot_deg_s = qdot_deg_s.tolist()
         for i in range(6):
-            if abs(qdot_deg_s[i]) > speed_limits_deg_s[i] * (1.0 + 1e-9):
+            if bits & (1 << i):
                 out.append(Finding("joint_speed", f"J{i + 1} commanded {qdot_deg_s[i]:.1f} "
                                                   f"deg/s > {speed_limits_deg_s[i]:.0f} deg/s"))
-        rel = twist if tooth_twist is None else [twist[i] - tooth_twist[i] for i in range(3)]
-        v = math.sqrt(float(rel[0]) ** 2 + float(rel[1]) ** 2 + float(rel[2]) ** 2)
-        if v > self.lim.tip_speed_cap_mm_s:
+        if bits & (1 << 6):
             what = "" if tooth_twist is None else " relative to the tracked tooth"
-            out.append(Finding("tip_speed", f"file tip commanded {v:.1f} mm/s{what} > cap "
-                                            f"{self.lim.tip_speed_cap_mm_s} mm/s"))
+            out.append(Finding("tip_speed", f"file tip commanded {self._cmd_out[0]:.1f} mm/s"
+                                            f"{what} > cap {self.lim.tip_speed_cap_mm_s} mm/s"))
         return out

@@ -162,3 +162,21 @@ def test_controller_reference_point_rotation_about_that_point():
     rel = robot.fk_tool(Q0)[:3, :3].T @ robot.fk_tool(q)[:3, :3]
     rotvec = Rotation.from_matrix(rel).as_rotvec()
     np.testing.assert_allclose(rotvec, [0.04975, 0.0, 0.0], atol=1e-4)  # 0.2 % (same drift)
+
+
+def test_a_twist_beyond_the_joints_speeds_is_scaled_uniformly_and_reported():
+    """A 1000 N push along x: the first filtered twist is k ts / (ts b + 2 m) x 1000 =
+    500 x 0.002 / 0.32 x 1000 = 3125 mm/s, far beyond the joints' speeds. The limiter scales
+    every joint by one factor, so the fastest joint runs exactly at its limit; the report
+    says so. With no force nothing is limited."""
+    robot = Meca500()
+    ctl = AdmittanceController(robot, SELF_ALIGNMENT)
+    calm = ctl.step(Q0, np.zeros(6))
+    assert not calm.limits.limited and np.allclose(calm.qdot_deg_s, 0.0)
+    ctl = AdmittanceController(robot, SELF_ALIGNMENT)
+    cmd = ctl.step(Q0, np.array([1000.0, 0, 0, 0, 0, 0]))
+    assert cmd.twist[0] == pytest.approx(3125.0)
+    ratio = np.abs(cmd.qdot_deg_s) / robot.joint_speed_limits_deg_s
+    assert ratio.max() == pytest.approx(1.0, rel=1e-9)
+    assert cmd.limits.limited and 0.0 < cmd.limits.speed_scale < 1.0
+    assert cmd.limits.singularity is not None

@@ -126,3 +126,42 @@ def test_the_tip_speed_cap_holds_relative_to_a_tracked_tooth():
     far = [-15.0, 0.0, 0.0, 0.0, 0.0, 0.0]            # the file against the tooth: 71 mm/s
     found = sup.check_command([0.0] * 6, twist, limits, far)
     assert len(found) == 1 and "relative to the tracked tooth" in found[0].detail
+
+
+def test_the_kernels_tables_match_their_indices_and_the_interfaces_bit():
+    from dentibot.runtime import supervisor_kernels as sk
+
+    assert sk.SATURATED_BIT == WRENCH_SATURATED
+    assert sk.INPUT_OUT_FIELDS.index("stale_arm") == sk.O_STALE
+    for const, field in (("O_BAD_GROUP", "bad_group"), ("O_BAD_INDEX", "bad_index"),
+                         ("O_BAD_VALUE", "bad_value"), ("O_SATURATED", "saturated"),
+                         ("O_JUMP", "jump")):
+        assert getattr(sk, const) == sk.INPUT_OUT_FIELDS.index(field), const
+    assert sk.INPUT_OUT_FIELDS[:4] == tuple(f"stale_{n}" for n in sk.STREAMS)
+    for const, field in (("E_TAU_FT", "tau_ft"), ("E_DIFF", "tau_diff"),
+                         ("E_LATERAL", "lateral"), ("E_AXIAL", "axial"),
+                         ("E_SHOULDER", "shoulder"), ("E_ELBOW", "elbow"),
+                         ("E_WRIST", "wrist")):
+        assert getattr(sk, const) == sk.ESTIMATE_OUT_FIELDS.index(field), const
+    for const, table, field in (("F_FREE", sk.FRACTURE_FIELDS, "free_mnm"),
+                                ("F_FREE_N", sk.FRACTURE_FIELDS, "free_n"),
+                                ("F_HEAD", sk.FRACTURE_FIELDS, "head"),
+                                ("F_COUNT", sk.FRACTURE_FIELDS, "count"),
+                                ("T_HEAD", sk.TIP_FIELDS, "head"),
+                                ("T_COUNT", sk.TIP_FIELDS, "count"),
+                                ("T_BAD", sk.TIP_FIELDS, "bad")):
+        assert getattr(sk, const) == table.index(field), const
+
+
+def test_a_stale_stream_is_named_with_its_age_and_bound():
+    """The F/T stream's sequence number stops changing at tick 1: with a bound of 5 periods
+    (STALE), ticks 2-6 are within it (ages 1-5) and tick 7 (age 6) is the first finding."""
+    s = Supervisor(STALE, 0.002)
+    js, w, m, aux = samples(0)
+    found = []
+    for k in range(1, 9):
+        js, _, m, aux = samples(k)
+        found.append(s.check_inputs(k, js, Wrench(0.0, 1, (0.0,) * 3, (0.0,) * 3), m, aux))
+    assert found[:6] == [[]] * 6
+    assert kinds(found[6]) == ["stale_ft"]
+    assert found[6][0].detail == "ft stream: seq 1 unchanged for 6 periods (limit 5)"
