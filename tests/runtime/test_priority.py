@@ -79,3 +79,40 @@ def test_lock_step_leaves_the_priority_alone():
     before = os.getpriority(os.PRIO_PROCESS, 0), os.sched_getscheduler(0)
     with realtime_policy(LockStepClock(lambda: None)):
         assert (os.getpriority(os.PRIO_PROCESS, 0), os.sched_getscheduler(0)) == before
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="no per-thread priorities")
+def test_the_other_threads_are_raised_with_the_loop_and_restored():
+    """A thread of the process that shares the interpreter lock with the control loop (a
+    driver's receiver) runs at the raised nice value while the loop runs, and at its own
+    before and after; the calling thread is left to raised_priority."""
+    import threading
+
+    from dentibot.runtime.clock import others_raised
+
+    ready, done = threading.Event(), threading.Event()
+    tid: list[int] = []
+
+    def receiver() -> None:
+        tid.append(threading.get_native_id())
+        ready.set()
+        done.wait(5.0)
+
+    t = threading.Thread(target=receiver, daemon=True)
+    t.start()
+    ready.wait(5.0)
+    me_before = os.getpriority(os.PRIO_PROCESS, 0)
+    before = os.getpriority(os.PRIO_PROCESS, tid[0])
+    try:
+        with others_raised():
+            inside = os.getpriority(os.PRIO_PROCESS, tid[0])
+            me_inside = os.getpriority(os.PRIO_PROCESS, 0)
+        after = os.getpriority(os.PRIO_PROCESS, tid[0])
+    finally:
+        done.set()
+        t.join(5.0)
+    assert after == before and me_inside == me_before
+    if _may_raise() and before > REALTIME_NICE:
+        assert inside == REALTIME_NICE
+    else:
+        assert inside == before
