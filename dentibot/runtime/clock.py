@@ -19,9 +19,9 @@
 from __future__ import annotations
 
 import asyncio
+import bisect
 import contextlib
 import gc
-import bisect
 import math
 import os
 import threading
