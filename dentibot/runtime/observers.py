@@ -58,40 +58,36 @@ class ObserverLimits:
 
 class SpindleObserver:
     """The handpiece does what it was told: enabled while commanded to turn, at the commanded
-    speed (after ``settle_s``), still when commanded to stop."""
+    speed (after ``settle_s``), still when commanded to stop. (Compiled:
+    :func:`~dentibot.runtime.supervisor_kernels.spindle`.)"""
 
     def __init__(self, ts: float, limits: ObserverLimits) -> None:
         self.ts, self.lim = ts, limits
         self._cmd = None
-        self._since = 0
-        self._bad = 0
+        self._st = np.zeros(len(sk.SPINDLE_FIELDS))
+        self._lim = np.array([limits.settle_s, limits.speed_tolerance_rpm,
+                              limits.speed_tolerance_share, limits.loaded_mnm,
+                              limits.persist_s])
 
     def check(self, file_cmd, rpm: float, enabled: bool, torque_mnm: float) -> list[Finding]:
-        lim = self.lim
-        if file_cmd != self._cmd:
-            self._cmd, self._since, self._bad = file_cmd, 0, 0
-        self._since += 1
-        if file_cmd is None or file_cmd[0] == "reverse":
-            return []
-        want = file_cmd[1] if file_cmd[0] == "vel" else 0.0
-        if self._since * self.ts < lim.settle_s:
-            return []
-        if want != 0.0 and not enabled:
+        changed = file_cmd != self._cmd
+        if changed:
+            self._cmd = file_cmd
+        compared = file_cmd is not None and file_cmd[0] != "reverse"
+        want = file_cmd[1] if compared and file_cmd[0] == "vel" else 0.0
+        code = sk.spindle(self._st, self._lim, self.ts, changed, compared, float(want),
+                          float(rpm), bool(enabled), float(torque_mnm))
+        if code == sk.SPINDLE_DISABLED:
             return [Finding("handpiece_disabled",
                             f"the drive reports its output disabled while commanded "
                             f"{want:g} rpm (file at {rpm:.0f} rpm)")]
-        tol = max(lim.speed_tolerance_rpm, lim.speed_tolerance_share * abs(want))
-        slow_under_load = abs(rpm) < abs(want) and abs(torque_mnm) > lim.loaded_mnm
-        if abs(rpm - want) > tol and not slow_under_load:
-            self._bad += 1
-        else:
-            self._bad = 0
-        if self._bad * self.ts >= lim.persist_s:
+        if code == sk.SPINDLE_SPEED:
             what = "to stop" if want == 0.0 else f"{want:g} rpm"
             return [Finding("handpiece_speed",
                             f"file turning at {rpm:.0f} rpm while commanded {what} for "
-                            f"{1000 * self._bad * self.ts:.0f} ms (tolerance {tol:.0f} rpm; "
-                            "drive power lost, or another master on the bus)")]
+                            f"{1000 * self._st[sk.SP_BAD] * self.ts:.0f} ms (tolerance "
+                            f"{self._st[sk.SP_TOL]:.0f} rpm; drive power lost, or another "
+                            "master on the bus)")]
         return []
 
 

@@ -170,6 +170,40 @@ def command_checks(qdot_deg_s: np.ndarray, twist: np.ndarray, speed_limits: np.n
     return found
 
 
+#: The spindle observer's state: periods since the file command changed, consecutive
+#: periods off the command, and the speed tolerance last applied (rpm).
+SPINDLE_FIELDS = ("since", "bad", "tol")
+SP_SINCE, SP_BAD, SP_TOL = range(3)
+#: :func:`spindle`'s findings.
+SPINDLE_DISABLED, SPINDLE_SPEED = 1, 2
+
+
+@njit(cache=True)
+def spindle(st: np.ndarray, lim: np.ndarray, ts: float, changed: bool, compared: bool,
+            want_rpm: float, rpm: float, enabled: bool, torque_mnm: float) -> int:
+    """One period of the handpiece against its command (see
+    :class:`~dentibot.runtime.observers.SpindleObserver`): ``changed``, a new command
+    (the counts restart); ``compared``, a command whose speed is compared (not a reversal);
+    ``want_rpm`` its speed (0 for a stop). ``lim``: (settle_s, tolerance_rpm,
+    tolerance_share, loaded_mnm, persist_s). Returns 0, :data:`SPINDLE_DISABLED` or
+    :data:`SPINDLE_SPEED` (the tolerance in ``st``)."""
+    if changed:
+        st[SP_SINCE] = st[SP_BAD] = 0.0
+    st[SP_SINCE] += 1.0
+    if not compared or st[SP_SINCE] * ts < lim[0]:
+        return 0
+    if want_rpm != 0.0 and not enabled:
+        return SPINDLE_DISABLED
+    tol = max(lim[1], lim[2] * abs(want_rpm))
+    st[SP_TOL] = tol
+    slow_under_load = abs(rpm) < abs(want_rpm) and abs(torque_mnm) > lim[3]
+    if abs(rpm - want_rpm) > tol and not slow_under_load:
+        st[SP_BAD] += 1.0
+    else:
+        st[SP_BAD] = 0.0
+    return SPINDLE_SPEED if st[SP_BAD] * ts >= lim[4] else 0
+
+
 #: The fracture observer's state: the learnt free-running torque and how many samples it is
 #: the mean of; the window's ring (its oldest slot, how many samples it holds).
 FRACTURE_FIELDS = ("free_mnm", "free_n", "head", "count")
@@ -266,6 +300,8 @@ def warm_up() -> None:
     fracture(np.zeros(len(FRACTURE_FIELDS)), np.zeros((23, 3)), np.ones(5), 3, True, 1.0, 2.0,
              True, np.zeros(2))
     tip_speed(np.zeros(len(TIP_FIELDS)), np.zeros((6, 3)), 0.0, 0.0, 0.0, 0.002, 60.0)
+    spindle(np.zeros(len(SPINDLE_FIELDS)), np.ones(5), 0.002, True, True, 60.0, 60.0, True,
+            0.0)
 
 
 warm_up()      # at import: before any device streams or loop runs

@@ -149,7 +149,10 @@ def test_the_kernels_tables_match_their_indices_and_the_interfaces_bit():
                                 ("F_COUNT", sk.FRACTURE_FIELDS, "count"),
                                 ("T_HEAD", sk.TIP_FIELDS, "head"),
                                 ("T_COUNT", sk.TIP_FIELDS, "count"),
-                                ("T_BAD", sk.TIP_FIELDS, "bad")):
+                                ("T_BAD", sk.TIP_FIELDS, "bad"),
+                                ("SP_SINCE", sk.SPINDLE_FIELDS, "since"),
+                                ("SP_BAD", sk.SPINDLE_FIELDS, "bad"),
+                                ("SP_TOL", sk.SPINDLE_FIELDS, "tol")):
         assert getattr(sk, const) == table.index(field), const
 
 
