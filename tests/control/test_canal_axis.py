@@ -90,24 +90,6 @@ def test_bad_parameters_name_the_field_and_the_limit():
         AxisServoParams(gain_per_s=0.0)
 
 
-def test_the_kernels_indices_are_their_fields_positions():
-    from dentibot.control import canal_axis_kernels as ak
-
-    for const, table, field in (("S_TARE", ak.STATE_FIELDS, "tare_fx"),
-                                ("S_TARED", ak.STATE_FIELDS, "tared"),
-                                ("S_LOAD", ak.STATE_FIELDS, "load_fx"),
-                                ("S_LOADED", ak.STATE_FIELDS, "loaded"),
-                                ("S_TILT", ak.STATE_FIELDS, "tilt_x"),
-                                ("P_A_TARE", ak.PARAM_FIELDS, "a_tare"),
-                                ("P_A_LOAD", ak.PARAM_FIELDS, "a_load"),
-                                ("P_MAX_RATE", ak.PARAM_FIELDS, "max_rate"),
-                                ("P_HOLD", ak.PARAM_FIELDS, "hold"),
-                                ("P_STOP", ak.PARAM_FIELDS, "stop"),
-                                ("P_GAIN", ak.PARAM_FIELDS, "gain"),
-                                ("P_MIN_DEPTH", ak.PARAM_FIELDS, "min_depth")):
-        assert getattr(ak, const) == table.index(field), const
-
-
 def test_the_loads_build_up_as_a_first_order_filter_from_zero():
     """A constant tip load F from the first period in the canal: after n periods the filtered
     load is F (1 - (1 - a)^n), a = ts / (filter_s + ts), and the chord's tilt (linear in the

@@ -1,12 +1,14 @@
-"""The compiled kernels index their state and parameter arrays by constants: each constant
-must be the position of its field in the module's table (a field added in the middle shifts
-them all)."""
+"""The compiled kernels (the simulator's, the control tick's, the supervisor's) index their
+state, parameter and output arrays by constants: each constant must be the position of its
+field in the module's table (a field added in the middle shifts them all)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from dentibot.control import canal_axis_kernels
+from dentibot.runtime import supervisor_kernels
 from dentibot.sim import canal_kernels, ftsensor_kernels, handpiece_kernels, world_kernels
 
 # (module, table, {constant: field})
@@ -46,6 +48,23 @@ TABLES = [
     (world_kernels, "PARAM_FIELDS", {
         "_TOOL_P": "tool_px", "_TOOL_Z": "tool_zx", "_FAT_C": "fatigue_c",
         "_FAT_B": "fatigue_b", "_STRENGTH": "torsional_strength_mnm"}),
+    (canal_axis_kernels, "STATE_FIELDS", {
+        "S_TARE": "tare_fx", "S_TARED": "tared", "S_LOAD": "load_fx", "S_LOADED": "loaded",
+        "S_TILT": "tilt_x"}),
+    (canal_axis_kernels, "PARAM_FIELDS", {
+        "P_A_TARE": "a_tare", "P_A_LOAD": "a_load", "P_MAX_RATE": "max_rate", "P_HOLD": "hold",
+        "P_STOP": "stop", "P_GAIN": "gain", "P_MIN_DEPTH": "min_depth"}),
+    (supervisor_kernels, "INPUT_OUT_FIELDS", {
+        "O_STALE": "stale_arm", "O_BAD_GROUP": "bad_group", "O_BAD_INDEX": "bad_index",
+        "O_BAD_VALUE": "bad_value", "O_SATURATED": "saturated", "O_JUMP": "jump"}),
+    (supervisor_kernels, "ESTIMATE_OUT_FIELDS", {
+        "E_TAU_FT": "tau_ft", "E_DIFF": "tau_diff", "E_LATERAL": "lateral",
+        "E_AXIAL": "axial", "E_SHOULDER": "shoulder", "E_ELBOW": "elbow", "E_WRIST": "wrist"}),
+    (supervisor_kernels, "FRACTURE_FIELDS", {
+        "F_FREE": "free_mnm", "F_FREE_N": "free_n", "F_HEAD": "head", "F_COUNT": "count"}),
+    (supervisor_kernels, "TIP_FIELDS", {"T_HEAD": "head", "T_COUNT": "count", "T_BAD": "bad"}),
+    (supervisor_kernels, "SPINDLE_FIELDS", {"SP_SINCE": "since", "SP_BAD": "bad",
+                                            "SP_TOL": "tol"}),
 ]
 
 
