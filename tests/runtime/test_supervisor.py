@@ -139,7 +139,6 @@ def test_a_stale_stream_is_named_with_its_age_and_bound():
     """The F/T stream's sequence number stops changing at tick 1: with a bound of 5 periods
     (STALE), ticks 2-6 are within it (ages 1-5) and tick 7 (age 6) is the first finding."""
     s = Supervisor(STALE, 0.002)
-    js, w, m, aux = samples(0)
     found = []
     for k in range(1, 9):
         js, _, m, aux = samples(k)
