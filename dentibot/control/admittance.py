@@ -147,12 +147,12 @@ class AdmittanceFilter:
         self.v[:] = 0.0
         self._f_prev[:] = 0.0
 
-    def step(self, f: np.ndarray, fz: float = 0.0) -> np.ndarray:
-        """Advance one period with the wrench ``f`` plus ``fz`` along z
+    def step(self, f: np.ndarray) -> np.ndarray:
+        """Advance one period with the wrench ``f``
         (:func:`~dentibot.control.admittance_kernels.filter_step`); the new twist (a copy)."""
         out = np.empty(6)
-        filter_step(self._a, self._c, self.v, self._f_prev, np.asarray(f, dtype=float),
-                    float(fz), out)
+        filter_step(self._a, self._c, self.v, self._f_prev, np.asarray(f, dtype=float), 0.0,
+                    out)
         return out
 
 

@@ -44,7 +44,8 @@ def file_torque_from_current(current_a: float, efficiency: float = 1.0,
 @njit(cache=True)
 def file_torque_estimate_mnm(current_a: float, velocity_rpm: float, efficiency: float = 1.0,
                              friction_current_a: float = 0.0, km_mnm_per_a: float = KM_MNM_PER_A,
-                             gear_ratio: float = GEAR_RATIO, moving_rpm: float = MOVING_RPM) -> float:
+                             gear_ratio: float = GEAR_RATIO,
+                             moving_rpm: float = MOVING_RPM) -> float:
     """File torque (mNm) from the motor current with the no-load (friction) current removed:
     ``T = (I - I_f sign(w)) Km GR eta`` (eq 5.4-5.5 plus friction; ``sign(w)`` is 0 below
     ``moving_rpm``). With ``efficiency = 1`` and no friction this is eq 5.4-5.5 as printed.

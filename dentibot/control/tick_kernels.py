@@ -55,21 +55,25 @@ def sense(q_deg: np.ndarray, raw: np.ndarray, current_a: float, velocity_rpm: fl
         norm += wrench_h[i] * wrench_h[i]
     tau = file_torque_estimate_mnm(current_a, velocity_rpm, efficiency, friction_current_a,
                                    KM_MNM_PER_A, GEAR_RATIO, MOVING_RPM)
-    tip = tool_point_axes(frames, tool, np.zeros(3))
+    if ref_h[0] == 0.0 and ref_h[1] == 0.0 and ref_h[2] == 0.0:
+        tip = pa                        # the reference point is the tip (self-alignment)
+    else:
+        tip = tool_point_axes(frames, tool, np.zeros(3))
     return frames, jh, wrench_h, math.sqrt(norm), tau, tip
 
 
 def warm_up() -> None:
     """Compile (or load from the cache) :func:`sense` for the argument types the runtime
-    passes: the gravity model's and the transform's read-only arrays, or (no model yet)
-    plain ones. Called once, at import."""
+    passes: the gravity model's and the transform's arrays are read-only, and so are the
+    stand-ins :func:`dentibot.control.tick.sense` passes before a model is known. Called
+    once, at import."""
     from dentibot.control.linalg import readonly
 
     dh = np.zeros((6, 5))
     dh[:, 0] = 1.0
-    z6, gain, m = np.zeros(6), np.zeros((6, 3)), np.eye(6)
-    for off, g, t in ((z6, gain, m), (readonly(z6), readonly(gain), readonly(m))):
-        sense(z6, z6, 0.0, 0.0, dh, np.eye(4), np.zeros(3), True, off, g, t, 1.0, 0.0)
+    z6 = np.zeros(6)
+    sense(z6, z6, 0.0, 0.0, dh, np.eye(4), np.zeros(3), True, readonly(z6),
+          readonly(np.zeros((6, 3))), readonly(np.eye(6)), 1.0, 0.0)
 
 
 warm_up()      # at import: before any device streams or loop runs

@@ -375,8 +375,8 @@ def realtime_policy(clock: Clock):
     """The control loop's policy under ``clock``. In real time: the thread's priority raised
     (:func:`raised_priority`: SCHED_FIFO when the clock waits on the kernel timer, else a
     nice value), the process's other threads raised to the nice value
-    (:func:`others_raised`), and the garbage collector kept out of ticks. Yields ``collect(n)`` to call in
-    the slack after tick ``n``.
+    (:func:`others_raised`), and the garbage collector kept out of ticks. Yields
+    ``collect(n)`` to call in the slack after tick ``n``.
 
     In real time the cyclic collector runs only there (young generation every 50 ticks, older
     every 5000), never in the middle of a tick: a full collection triggered by allocation can

@@ -181,7 +181,7 @@ class Supervisor:
         boxed = depth_ref is not None
         (ox, oy, oz), (ax, ay, az) = depth_ref if boxed else ((0.0,) * 3, (0.0,) * 3)
         tip = est.tip_0
-        q = est.q_deg if type(est.q_deg) is np.ndarray else np.asarray(est.q_deg, dtype=float)
+        q = np.asarray(est.q_deg, dtype=float)
         o = self._est_out
         bits = sk.estimate_checks(
             self._disagree, self._est_lim, self.ts, bool(file_turning),
@@ -243,7 +243,7 @@ class Supervisor:
             if bits & (1 << i):
                 out.append(Finding("joint_speed", f"J{i + 1} commanded {qdot_deg_s[i]:.1f} "
                                                   f"deg/s > {speed_limits_deg_s[i]:.0f} deg/s"))
-        if bits & (1 << 6):
+        if bits & sk.TIP_SPEED_BIT:
             what = "" if tooth_twist is None else " relative to the tracked tooth"
             out.append(Finding("tip_speed", f"file tip commanded {self._cmd_out[0]:.1f} mm/s"
                                             f"{what} > cap {self.lim.tip_speed_cap_mm_s} mm/s"))

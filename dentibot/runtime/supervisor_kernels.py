@@ -149,13 +149,18 @@ def estimate_checks(disagree: np.ndarray, lim: np.ndarray, ts: float, turning: b
     return found
 
 
+#: Bit of :func:`command_checks`' result: the tip's commanded speed above the cap (joint i
+#: above its limit: bit i).
+TIP_SPEED_BIT = 1 << 6
+
+
 @njit(cache=True)
 def command_checks(qdot_deg_s: np.ndarray, twist: np.ndarray, speed_limits: np.ndarray,
                    tooth: bool, tooth_twist: np.ndarray, cap_mm_s: float,
                    out: np.ndarray) -> int:
     """The command's checks: each joint rate against its limit (bit i), and the tip's
-    commanded speed (relative to the tracked tooth's when ``tooth``) against the cap (bit 6),
-    written to ``out[0]``. Returns the bits (0: nothing)."""
+    commanded speed (relative to the tracked tooth's when ``tooth``) against the cap
+    (:data:`TIP_SPEED_BIT`), written to ``out[0]``. Returns the bits (0: nothing)."""
     found = 0
     for i in range(6):
         if abs(qdot_deg_s[i]) > speed_limits[i] * (1.0 + 1e-9):
@@ -166,7 +171,7 @@ def command_checks(qdot_deg_s: np.ndarray, twist: np.ndarray, speed_limits: np.n
     v = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
     out[0] = v
     if v > cap_mm_s:
-        found |= 1 << 6
+        found |= TIP_SPEED_BIT
     return found
 
 
