@@ -53,16 +53,16 @@ def transform_wrench(matrix: np.ndarray, wrench: np.ndarray) -> np.ndarray:
 
 
 def warm_up() -> None:
-    """Compile (or load from the cache) the kernels for the argument types the controller
-    passes (the models' parameters are read-only arrays: a type of their own to numba).
-    Called once, at import."""
+    """Compile (or load from the cache) the kernels for the argument types the models pass:
+    their parameters are read-only arrays (a type of their own to numba), the readings plain
+    ones. Called once, at import."""
     from dentibot.control.linalg import readonly
 
     w = np.zeros(6)
-    gain = np.zeros((6, 3))
-    for offset, g, m in ((w, gain, np.eye(6)), (readonly(w), readonly(gain), readonly(np.eye(6)))):
-        external_wrench(w, offset, g, 0.0, 0.0, 1.0)   # the models hold read-only arrays
-        transform_wrench(m, w)
+    gain = readonly(np.zeros((6, 3)))
+    gravity_wrench(gain, 0.0, 0.0, 1.0)
+    external_wrench(w, readonly(w), gain, 0.0, 0.0, 1.0)
+    transform_wrench(readonly(np.eye(6)), w)
 
 
 warm_up()      # at import: before any device streams or loop runs
