@@ -59,11 +59,13 @@ def test_protocol_runs_against_the_wire_simulators_in_another_process(tmp_path):
             f"ft: {{host: 127.0.0.1, port: {netft}, http_port: {http}, "
             "stale_after_ms: 100}\n"
             f"handpiece: {{interface: socketcand, host: 127.0.0.1, port: {can}, "
-            "channel: vcan0}\n"
+            "channel: vcan0, consumer_ms: 150}\n"
             f"aux: {{host: 127.0.0.1, port: {modbus}}}\n")
         protocol = tmp_path / "p.yaml"
         # a loaded CI machine delays loopback samples: looser freshness bounds than hardware,
-        # the F/T driver's own (100 ms in the device file above) as loose as the protocol's
+        # the F/T driver's own (100 ms in the device file above) as loose as the protocol's;
+        # the drive's heartbeat consumer (150 ms above, 30 by default) too, as either
+        # process may stall past 30 ms there
         protocol.write_text(
             "name: wire\nlimits: {stale_periods: {arm: 50, ft: 50, motor: 50, aux: 200}}\n"
             "steps:\n  - calibrate_load: {}\n  - drag: {duration_s: 0.5}\n")
