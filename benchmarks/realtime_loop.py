@@ -183,7 +183,10 @@ async def _let_devices_run() -> None:
 async def control_loop(d, world: World, clock: Clock, seconds: float) -> dict:
     """The runtime's control task paced by ``clock`` for ``seconds``; its timing figures.
     Devices a previous loop left faulted are brought back first (the operator's reset), so
-    that one loop's fault does not become the next one's."""
+    that one loop's fault does not become the next one's. ``host_heartbeat_gap_max_ms``:
+    the longest pause of the host's heartbeat from here (the work between two loops
+    included) to the end of the loop, against the drive's consumer time."""
+    d.motor.host_heartbeat_gap_max_s = 0.0
     cause = await recover_all(d.motor, d.arm, d.aux)
     if cause is not None:
         raise RuntimeError(f"the devices did not recover before the loop: {cause}")
@@ -208,6 +211,8 @@ async def control_loop(d, world: World, clock: Clock, seconds: float) -> dict:
     await _let_devices_run()
     s = rt.stats.as_dict()
     s["effective_rate_hz"] = s["ticks"] / wall
+    s["host_heartbeat_gap_max_ms"] = d.motor.host_heartbeat_gap_max_s * 1e3
+    s["consumer_ms"] = d.motor.consumer_ms
     s["wall_s"] = wall
     s["control_cpu_percent"] = 100 * (time.process_time() - cpu0) / wall
     s["lateness_us_exact"] = quantiles(late)
@@ -300,7 +305,8 @@ def print_report(r: dict) -> None:
                   f"{fmt(ex['max'], '.0f')} us (bins: p99 <= "
                   f"{s['lateness_us_p99']:.0f} us), overruns {s['overruns']}, skipped "
                   f"{s['skipped']}, rate {s['effective_rate_hz']:.0f} Hz, compute mean "
-                  f"{s['compute_us_mean']:.0f} us, F/T lost {st['ft_lost']} of "
+                  f"{s['compute_us_mean']:.0f} us, heartbeat gap max "
+                  f"{s['host_heartbeat_gap_max_ms']:.1f} ms, F/T lost {st['ft_lost']} of "
                   f"{st['ft_received']}, CPU {s['control_cpu_percent']:.0f} %, "
                   f"state {s['state']}{' ' + '; '.join(s['faults']) if s['faults'] else ''}")
         print(f"{rate:>5} Hz simulator process CPU {res['simulator_cpu_percent']:.0f} %")

@@ -370,7 +370,9 @@ def print_table(res: dict, flat: dict) -> None:
                           f"{st['motor_received']} (own SYNC cycles late "
                           f"{st['motor_overruns']}), arm cycles {st['arm_received']} "
                           f"({st['arm_lost']} without joints); compute mean "
-                          f"{s['compute_us_mean']:.0f} us"), ""))
+                          f"{s['compute_us_mean']:.0f} us; host heartbeat gap max "
+                          f"{s['host_heartbeat_gap_max_ms']:.1f} ms (the drive's consumer "
+                          f"{s['consumer_ms']} ms)"), ""))
         rts = rt["round_trips"]
         rows.append(("device round trips, median", "",
                      ", ".join(f"{k} {fmt(v['median_ms'], '.1f')}" for k, v in rts.items())

@@ -330,6 +330,10 @@ class Epos4Driver(CanOpenMaster):
         self.heartbeats = 0
         self.host_heartbeats = 0    # heartbeats this host produced for the drive's consumer
         self.withheld = 0           # host heartbeats withheld: the control path went silent
+        #: the longest time between two heartbeats this host produced (s): how close the host
+        #: came to the drive's consumer time (a stalled event loop, a loaded machine); the
+        #: caller may reset it to 0 to watch a stretch of its own
+        self.host_heartbeat_gap_max_s = 0.0
         self.feeds = 0
         self.latency_last_s = 0.0   # SYNC sent -> TxPDO2 received
         self.latency_max_s = 0.0
@@ -443,7 +447,9 @@ class Epos4Driver(CanOpenMaster):
                 pass
         self._teardown()
         log.info("epos4 closed", device=self.name, syncs=self.syncs_sent,
-                 received=self.received, lost=self.lost, errors=self.errors)
+                 received=self.received, lost=self.lost, errors=self.errors,
+                 host_heartbeat_gap_max_ms=round(self.host_heartbeat_gap_max_s * 1e3, 1),
+                 consumer_ms=self.consumer_ms)
 
     async def _start_up(self, sync: bool) -> None:
         nid = self.node_id
@@ -700,6 +706,9 @@ class Epos4Driver(CanOpenMaster):
         if self._withholding:
             self._withholding = False
             log.warning("epos4 host heartbeat resumed", device=self.name)
+        gap = now - self._host_hb_t
+        if gap > self.host_heartbeat_gap_max_s and self.host_heartbeats:
+            self.host_heartbeat_gap_max_s = gap
         self._host_hb_t = now
         self.host_heartbeats += 1
         self._send(self._host_hb_cob, co.encode_heartbeat(NmtState.OPERATIONAL))

@@ -398,8 +398,9 @@ def others_raised(nice: int = REALTIME_NICE, fifo_priority: int | None = None):
 def realtime_policy(clock: Clock):
     """The control loop's policy under ``clock``. In real time: the thread's priority raised
     (:func:`raised_priority`: SCHED_FIFO when the clock waits on the kernel timer, else a
-    nice value), the process's other threads raised to the nice value
-    (:func:`others_raised`), and the garbage collector kept out of ticks. Yields
+    nice value), the process's other threads raised with it (:func:`others_raised`: the
+    drivers' receivers just below it at SCHED_FIFO when it has SCHED_FIFO, the rest to the
+    nice value), and the garbage collector kept out of ticks. Yields
     ``collect(n)`` to call in the slack after tick ``n``.
 
     In real time the cyclic collector runs only there (young generation every 50 ticks, older

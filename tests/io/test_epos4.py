@@ -729,6 +729,22 @@ async def test_a_file_at_rest_keeps_its_heartbeat_without_feeds():
         assert r.node.state is State.OPERATION_ENABLED
 
 
+async def test_the_longest_heartbeat_gap_is_measured_through_a_blocked_event_loop():
+    """The host's heartbeat comes from the event loop: a loop blocked 60 ms sends none for at
+    least that long, and the driver reports the gap (a consumer of 250 ms does not expire)."""
+    async with rig() as r:
+        drv = r.drv
+        assert await until(lambda: drv.host_heartbeats >= 5)
+        drv.host_heartbeat_gap_max_s = 0.0
+        before = drv.host_heartbeats
+        await asyncio.sleep(0.05)
+        quiet = drv.host_heartbeat_gap_max_s
+        time.sleep(0.06)                                 # the event loop blocked
+        assert await until(lambda: drv.host_heartbeats >= before + 15)
+        assert quiet < 0.06 <= drv.host_heartbeat_gap_max_s
+        assert r.node.heartbeat_errors == 0
+
+
 @pytest.mark.parametrize("option, state", [
     (co.AbortConnectionOption.QUICK_STOP, State.QUICK_STOP_ACTIVE),     # 0x605A = 6: stay
     (co.AbortConnectionOption.DISABLE_VOLTAGE, State.SWITCH_ON_DISABLED),
