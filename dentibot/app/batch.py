@@ -109,28 +109,41 @@ def _raise_if_set(cancel: threading.Event | None) -> None:
         raise KeyboardInterrupt("cancelled")
 
 
-def run_protocol(protocol: Protocol, tap: Callable[[dict, ProtocolRunner], None],
+def run_protocol(protocol: Protocol, tap: Callable[[dict, ProtocolRunner], None] | None,
                  prepare: Callable[[ProtocolRunner], None] | None = None,
                  feed_summary: bool = False,
-                 limit_share: float | None = None) -> tuple[RunResult, ProtocolRunner]:
+                 limit_share: float | None = None,
+                 on_tick: Callable[[ProtocolRunner], None] | None = None
+                 ) -> tuple[RunResult, ProtocolRunner]:
     """Run ``protocol`` on the built-in simulator without a recording; ``tap(row, runner)``
-    sees every telemetry row.
+    sees every telemetry row, ``on_tick(runner)`` is called after every tick.
 
     ``prepare(runner)`` is called once before the run (to set what the protocol schema does
     not describe, e.g. when the patient's motion starts). Unless ``feed_summary``, the rows go
     to ``tap`` only, not to the runner's live summary (it would cost about a third of the run
     time): the result's summary then carries the status and its reason, the figures come from
-    the tap. ``limit_share``: see :class:`~dentibot.app.runner.ProtocolRunner`.
+    the tap. With neither a tap nor ``feed_summary`` no row is built at all (a study that
+    reads the runtime and the world in ``on_tick`` runs about a fifth faster).
+    ``limit_share``: see :class:`~dentibot.app.runner.ProtocolRunner`.
     """
     cancel = _CANCEL.get()
 
-    def each(row: dict) -> None:
-        tap(row, runner)
-        if cancel.is_set():
+    def cancelled() -> None:
+        if cancel is not None and cancel.is_set():
             runner.abort("cancelled")
 
-    runner = ProtocolRunner(protocol, no_record=True,
-                            tap=(lambda row: tap(row, runner)) if cancel is None else each,
+    def each(row: dict) -> None:
+        tap(row, runner)
+        cancelled()
+
+    def after(r: ProtocolRunner) -> None:
+        if on_tick is not None:
+            on_tick(r)
+        if tap is None:
+            cancelled()
+
+    runner = ProtocolRunner(protocol, no_record=True, tap=None if tap is None else each,
+                            on_tick=after if on_tick is not None or tap is None else None,
                             live_summary=feed_summary,
                             **({} if limit_share is None else {"limit_share": limit_share}))
     if prepare is not None:

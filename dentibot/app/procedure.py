@@ -58,9 +58,10 @@ EventSink = Callable[[int, str, str], None]
 
 
 def _at_rest(rt: Runtime) -> bool:
-    e = rt.last
-    return e is not None and abs(e.motor_rpm) < 1.0 and rt.last_row is not None and \
-        max(abs(x) for x in rt.last_row["qdot_cmd_deg_s"]) == 0.0
+    """The file still and no joint commanded to move in the last tick (none: at rest)."""
+    e, qdot = rt.last, rt.qdot_cmd
+    return e is not None and abs(e.motor_rpm) < 1.0 and (
+        qdot is None or max(abs(float(x)) for x in qdot) == 0.0)
 
 
 class Procedure:

@@ -148,6 +148,8 @@ class ProtocolRunner:
     (step, state, t, depth, working length, file torque and its limit, force). ``tap(row)``
     sees every telemetry row; with ``live_summary=False`` the rows feed only the tap and the
     recording, not the live summary (the summary then carries the status and its reason).
+    ``on_tick(runner)`` is called at the end of every tick; when nothing else needs the rows
+    (no recording, live view, live summary, tap or progress) none is built.
     ``limit_share``: the largest share of the file's strength the protocol's hard torque limit
     may be (90 %; a study of strategies without the runtime's net on the built-in simulator may
     go up to 1). ``live``: a port on 127.0.0.1 where the run's channels are served live over the
@@ -159,6 +161,7 @@ class ProtocolRunner:
                  progress_every: int = 250, overwrite: bool = False,
                  no_record: bool = False, devices: DevicesConfig | None = None,
                  tap: Callable[[dict], None] | None = None,
+                 on_tick: Callable[[ProtocolRunner], None] | None = None,
                  live_summary: bool = True,
                  limit_share: float = LIMIT_SHARE_OF_STRENGTH,
                  live: int | None = None, resume_arm: bool = False) -> None:
@@ -181,6 +184,7 @@ class ProtocolRunner:
         self.summary: RunSummary | None = None
         self.acc = SummaryAccumulator(rate_hz=protocol.control.rate_hz)
         self._tap = tap
+        self._on_tick = on_tick
         self._live_summary = live_summary
         calibrate = any(s.kind == "calibrate_load" for s in protocol.steps)
         self.devices = devices
@@ -309,6 +313,10 @@ class ProtocolRunner:
             meta = self.recorder.metadata
         if self._live_port is not None:
             self.live = LiveView(meta, port=self._live_port, view=view)
+        if self._on_tick is not None:
+            rt.on_tick = lambda _rt: self._on_tick(self)
+        if not (self._live_summary or self.recorder or self.live or self._tap or self.progress):
+            rt.sink = None                      # nobody reads rows: none is built
         steps = StepExecutor(proc, aborted=lambda: bool(self._abort_reason))
         try:
             for i, step in enumerate(p.steps):

@@ -69,6 +69,14 @@ def sim_devices(world: World, tracker: TrackerSimParams | None = None) -> Device
                    tracker=None if tracker is None else SimPatientTracker(world, tracker))
 
 
+def true_depth_mm(world: World, axis: tuple | None = None) -> float:
+    """The file tip's true depth along the canal's axis from the orifice (mm; the simulator's
+    truth: the patient's motion included). ``axis``: ``world.canal_axis_0()`` if known."""
+    o, t0 = axis or world.canal_axis_0()
+    tip = world.tip_0
+    return sum((tip[i] - o[i]) * t0[i] for i in range(3))
+
+
 class Truth:
     """What only a simulation knows, added to every telemetry row (phantom pose, true depth,
     completeness, fracture); the control never reads it."""
@@ -79,14 +87,12 @@ class Truth:
 
     def __call__(self) -> dict:
         w = self.world
-        o, t0 = w.canal_axis_0()
+        axis = w.canal_axis_0()
         if hasattr(w.motion, "rotation_at"):          # a turning patient: its pose now
             self._phantom_euler = euler_xyz_deg(w.phantom_rotation.tolist())
-        tip = w.tip_0
-        depth = sum((tip[i] - o[i]) * t0[i] for i in range(3))
         return {
-            "phantom_pose": [*o, *self._phantom_euler],
-            "true_depth_mm": depth,
+            "phantom_pose": [*axis[0], *self._phantom_euler],
+            "true_depth_mm": true_depth_mm(w, axis),
             "completeness": w.completeness(),
             "fractured": w.fractured is not None,
         }

@@ -43,6 +43,7 @@ import numpy as np
 
 from dentibot.control.feedrate import FILE_STRENGTH_MNM
 from dentibot.app.batch import run_protocol, stalled_seconds
+from dentibot.app.simulated import true_depth_mm
 from dentibot.experiments.common import Check, distribution
 from dentibot.protocol.schema import LimitsSpec, Protocol
 
@@ -218,23 +219,25 @@ def run_phantom(spec: PreclinicalSpec) -> PhantomRun:
                               "feeding": []}
     protocol = preclinical_protocol(spec)
 
-    def tap(row: dict, runner) -> None:
-        w = runner.world
+    def after_tick(runner) -> None:
+        rt, w = runner.rt, runner.world
+        if rt.last is None:             # before the first estimate (no row either)
+            return
         tq = abs(w.handpiece.torque_mnm)
         peak[0] = max(peak[0], tq)
-        peak[1] = max(peak[1], abs(row["file_torque_mnm"]))
-        if row["tick"] % TRACE_EVERY == 0:
+        peak[1] = max(peak[1], abs(rt.last.file_torque_mnm))
+        if (rt.ticks - 1) % TRACE_EVERY == 0:
             trace["t"].append(w.t)
-            trace["depth"].append(row["true_depth_mm"])
+            trace["depth"].append(true_depth_mm(w))
             trace["torque"].append(w.handpiece.torque_mnm)
-            trace["completeness"].append(row["completeness"])
-            trace["feeding"].append(row["state"] == "treating.drilling.feeding")
+            trace["completeness"].append(w.completeness())
+            trace["feeding"].append(rt.state == "treating.drilling.feeding")
 
     wall = time.perf_counter()
     # an ablation's hard limit may be the file's strength itself (no runtime net: the
     # strategy alone protects the file), which only a simulated study may ask for
     result, runner = run_protocol(
-        protocol, tap=tap,
+        protocol, None, on_tick=after_tick,
         limit_share=torque_limit_of(spec) / protocol.file.torsional_strength_mnm)
     wall = time.perf_counter() - wall
     w = runner.world

@@ -46,6 +46,7 @@ class Runtime:
 
     ``truth`` (simulator only) returns extra telemetry fields known only to a simulation
     (phantom pose, true depth, completeness, fracture); the control never reads them.
+    ``on_tick(runtime)``, when set, ends every tick (a study reading the world needs no row).
     """
 
     def __init__(self, devices: Devices, config: RuntimeConfig, clock: Clock, *,
@@ -78,14 +79,13 @@ class Runtime:
         self.step_name = step_name
         #: ``event_sink(tick, kind, detail)`` gets every event, command and fault as it happens.
         self.event_sink = event_sink
+        self.on_tick: Callable[[Runtime], None] | None = None
         self.ticks = 0
         self.events_log: list[tuple[int, str, str]] = []   # (tick, kind, detail)
         self.last: Estimate | None = None
         self.last_row: dict | None = None
-        self._state = None
         self.mode: Mode = MODES["idle"]
-        self._ref = None
-        self.file_cmd = None
+        self._state = self._ref = self.file_cmd = self.qdot_cmd = None   # qdot: last command
         #: events for the next tick (a command the supervisor refused)
         self.pending: list[tuple[str, str | None]] = []
         self._stop = asyncio.Event()
@@ -215,18 +215,18 @@ class Runtime:
             await tr.fire("fault", cause)
             self.note("fault", cause)
             await self._enter(tr.state, est)
-        # 6. telemetry: every tick, also when the inputs failed (then the last valid estimate
-        # is repeated and the row's events say "inputs_invalid")
-        self.ticks = k + 1
+        # 6. telemetry, every tick (inputs failed: the last estimate again, "inputs_invalid")
+        self.ticks, self.qdot_cmd = k + 1, qdot
         if est is not None:
             self.last = est
         if self.sink is not None and self.last is not None:
             if est is None:
                 events = [*events, ("inputs_invalid", None)]
-            row = telemetry_row(self, k, self.last, qdot, events, lateness_s,
-                            time.perf_counter() - t_start)
-            self.last_row = row
+            self.last_row = row = telemetry_row(self, k, self.last, qdot, events, lateness_s,
+                                                time.perf_counter() - t_start)
             self.sink(row)
+        if self.on_tick is not None:
+            self.on_tick(self)
 
     async def _read_and_estimate(self, k: int):
         try:
@@ -261,8 +261,7 @@ class Runtime:
         return est
 
     def set_tool_tip(self, tip_6_mm) -> None:
-        """Use a new tool tip 6p_H (TCP calibration) from now on: kinematics, the {S}->{H}
-        transforms and the configuration all follow."""
+        """A new tool tip 6p_H (TCP calibration): kinematics, {S}->{H} transforms, config."""
         tool = dataclasses.replace(self.cfg.tool, tip_6_mm=tuple(float(x) for x in tip_6_mm))
         self.cfg = dataclasses.replace(self.cfg, tool=tool)
         self.kin.set_tool(tool_matrix(self.R_6_H, tool.tip_6_mm))

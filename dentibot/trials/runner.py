@@ -56,6 +56,7 @@ import pyarrow.parquet as pq
 
 from dentibot.app.batch import run_all, run_protocol, stalled_seconds
 from dentibot.app.runner import ProtocolRunner
+from dentibot.app.simulated import true_depth_mm
 from dentibot.errors import ConfigError
 from dentibot.protocol.schema import LIMIT_SHARE_OF_STRENGTH, Protocol
 from dentibot.trials.population import Subject, draw
@@ -196,7 +197,7 @@ def _prepare(s: Subject) -> Callable[[ProtocolRunner], None]:
 
 
 class _Meter:
-    """The per-tick tap: peaks, stalls, time past the working length, and fatigue under the
+    """Called after every tick (``on_tick``): peaks, stalls, time past the working length, and fatigue under the
     file's own strain-life constants (Miner: sum of |revolutions| / N_f(strain))."""
 
     def __init__(self, s: Subject) -> None:
@@ -215,15 +216,18 @@ class _Meter:
         self.depth: list[float] = []
         self.feeding: list[bool] = []
 
-    def __call__(self, row: dict, runner: ProtocolRunner) -> None:
-        w = runner.world
+    def __call__(self, runner: ProtocolRunner) -> None:
+        """After each tick (from the first estimate on, as a telemetry row would be)."""
+        rt, w = runner.rt, runner.world
+        if rt.last is None:
+            return
         hp = w.handpiece
         tq = abs(hp.torque_mnm)
         if tq > self.peak:
             self.peak = tq
         if w.fractured is not None:       # the stub sinks unresisted: nothing to measure
             return
-        d = row["true_depth_mm"]
+        d = true_depth_mm(w)
         if d > self.depth_max:
             self.depth_max = d
         if d > self.wl + OVER_MM:
@@ -240,10 +244,10 @@ class _Meter:
                 if eps > self.peak_strain:
                     self.peak_strain = eps
         self.last_pos = pos
-        if row["tick"] % TRACE_EVERY == 0:
+        if (rt.ticks - 1) % TRACE_EVERY == 0:
             self.t.append(w.t)
             self.depth.append(d)
-            self.feeding.append(row["state"] == FEEDING)
+            self.feeding.append(rt.state == FEEDING)
 
 
 def build_runner(proc: Procedure, tap: Callable[[dict, ProtocolRunner], None] | None = None
@@ -266,8 +270,8 @@ def run_procedure(proc: Procedure) -> dict:
     s, arm = proc.subject, proc.arm
     meter = _Meter(s)
     wall = time.perf_counter()
-    result, runner = run_protocol(protocol_for(proc), meter, prepare=_prepare(s),
-                                  limit_share=_limit_share(proc))
+    result, runner = run_protocol(protocol_for(proc), None, prepare=_prepare(s),
+                                  limit_share=_limit_share(proc), on_tick=meter)
     wall = time.perf_counter() - wall
     w, rt = runner.world, runner.rt
     ts = rt.ts
