@@ -72,6 +72,34 @@ async def test_a_protocol_run_steps_the_world_once_per_tick_across_its_steps():
     assert not bad, bad[:3]
 
 
+async def test_a_run_that_only_reads_the_world_after_each_tick_builds_no_row(monkeypatch):
+    """With ``on_tick`` alone (no recording, live summary, tap or progress) no telemetry row is
+    built, ``on_tick`` sees every tick once and in order, and the run ends as the same
+    protocol with a tap does (same status, ticks and world time)."""
+    from dentibot.runtime import control_task
+
+    built = []
+    real_row = control_task.telemetry_row
+
+    def counting_row(*args, **kwargs):
+        built.append(args[1])
+        return real_row(*args, **kwargs)
+
+    monkeypatch.setattr(control_task, "telemetry_row", counting_row)
+    protocol = load_protocol(GOLDEN / "short-root-canal.yaml")
+    seen: list[tuple[int, float]] = []
+    runner = ProtocolRunner(protocol, no_record=True, live_summary=False,
+                            on_tick=lambda r: seen.append((r.rt.ticks, r.world.t)))
+    result = await runner.run()
+    assert not built
+    assert [k for k, _ in seen] == list(range(1, runner.rt.ticks + 1))
+    rows: list[dict] = []
+    tapped = ProtocolRunner(protocol, no_record=True, live_summary=False, tap=rows.append)
+    again = await tapped.run()
+    assert len(built) == len(rows) == len(seen)
+    assert (result.summary.status, seen[-1][1]) == (again.summary.status, rows[-1]["t"])
+
+
 async def test_stopping_the_procedure_leaves_nothing_moving():
     proc = Procedure.simulated(WorldConfig(seed=3))
     w = proc.world
