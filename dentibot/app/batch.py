@@ -128,23 +128,15 @@ def run_protocol(protocol: Protocol, tap: Callable[[dict, ProtocolRunner], None]
     """
     cancel = _CANCEL.get()
 
-    def cancelled() -> None:
-        if cancel is not None and cancel.is_set():
-            runner.abort("cancelled")
-
-    def each(row: dict) -> None:
-        tap(row, runner)
-        cancelled()
-
     def after(r: ProtocolRunner) -> None:
         if on_tick is not None:
             on_tick(r)
-        if tap is None:
-            cancelled()
+        if cancel is not None and cancel.is_set():
+            r.abort("cancelled")
 
-    runner = ProtocolRunner(protocol, no_record=True, tap=None if tap is None else each,
-                            on_tick=after if on_tick is not None or tap is None else None,
-                            live_summary=feed_summary,
+    runner = ProtocolRunner(protocol, no_record=True,
+                            tap=None if tap is None else (lambda row: tap(row, runner)),
+                            on_tick=after, live_summary=feed_summary,
                             **({} if limit_share is None else {"limit_share": limit_share}))
     if prepare is not None:
         prepare(runner)

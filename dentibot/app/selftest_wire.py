@@ -199,14 +199,6 @@ class SpeedLog:
         self.world.step = self._step
 
 
-def true_depth_mm(world) -> float:
-    """The file tip's depth along the canal axis from the orifice (what only a simulation
-    knows; > 0 inside the canal)."""
-    o, t0 = world.canal_axis_0()
-    tip = world.tip_0
-    return sum((tip[i] - o[i]) * t0[i] for i in range(3))
-
-
 def _lost(ticks: list[int], ran: int | None = None) -> int:
     """Ticks missing from ``ticks`` (delivered or read back), against ``ran`` when known."""
     if not ticks:
@@ -569,6 +561,7 @@ async def run_host_fault(name: str, seed: int = 1, directory: Path | None = None
     """``dentibot run`` drilling in a child process against the simulators served here; the
     signal of ``name`` mid-drilling (for SIGINT and SIGTERM once the file is ``in_canal_mm``
     deep: the withdrawal is then something to see)."""
+    from dentibot.app.simulated import true_depth_mm
     from dentibot.io.canopen_protocol import HEARTBEAT_ERROR_CODE, State
     from dentibot.telemetry.reader import read_recording
 

@@ -11,6 +11,7 @@ import dataclasses
 
 import numpy as np
 
+from dentibot.control.depth import depth_along
 from dentibot.control.kinematics import euler_xyz_deg
 from dentibot.control.wrench import GravityModel
 from dentibot.runtime.config import RuntimeConfig, ToolGeometry, TreatmentPlan
@@ -26,7 +27,7 @@ from dentibot.sim.world import World, WorldConfig
 #: platform square, a patient's jerk), handed on so that nothing above this layer imports the simulator.
 __all__ = ["JAW_HINGE_MM", "Jerk", "SQUARE_MM", "StewartSquare", "Truth", "World", "WorldConfig",
            "jaw_hinge", "plan_config", "serve_wire", "sim_devices", "tool_geometry_of",
-           "true_gravity_model"]
+           "true_depth_mm", "true_gravity_model"]
 
 
 def tool_geometry_of(world: World) -> ToolGeometry:
@@ -72,9 +73,7 @@ def sim_devices(world: World, tracker: TrackerSimParams | None = None) -> Device
 def true_depth_mm(world: World, axis: tuple | None = None) -> float:
     """The file tip's true depth along the canal's axis from the orifice (mm; the simulator's
     truth: the patient's motion included). ``axis``: ``world.canal_axis_0()`` if known."""
-    o, t0 = axis or world.canal_axis_0()
-    tip = world.tip_0
-    return sum((tip[i] - o[i]) * t0[i] for i in range(3))
+    return depth_along(world.tip_0, axis or world.canal_axis_0())
 
 
 class Truth:

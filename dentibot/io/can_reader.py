@@ -24,8 +24,6 @@ from collections.abc import Callable
 import can
 import structlog
 
-from dentibot.io import receivers
-
 log = structlog.get_logger(__name__)
 
 #: Frames handed over in one call at most (bounds the time one delivery holds the loop).
@@ -34,15 +32,12 @@ MAX_BATCH = 512
 
 class LoopReader:
     """Reads ``bus`` in a thread of its own; ``on_frame(msg)`` runs in ``loop`` for every
-    frame, in order. ``timeout`` (s) bounds how long :meth:`stop` waits for the thread.
-    ``receiver``: a driver's reader, raised with the control loop
-    (:mod:`dentibot.io.receivers`)."""
+    frame, in order. ``timeout`` (s) bounds how long :meth:`stop` waits for the thread."""
 
     def __init__(self, bus: can.BusABC, on_frame: Callable[[can.Message], object], *,
                  loop: asyncio.AbstractEventLoop,
                  on_error: Callable[[Exception], object] | None = None,
-                 timeout: float = 0.05, name: str | None = None,
-                 receiver: bool = False) -> None:
+                 timeout: float = 0.05, name: str | None = None) -> None:
         self.bus = bus
         self.on_frame = on_frame
         self.on_error = on_error
@@ -56,8 +51,6 @@ class LoopReader:
             target=self._run, daemon=True,
             name=name or f"can reader {getattr(bus, 'channel_info', '?')}")
         self._thread.start()
-        if receiver:
-            receivers.register(self._thread)
 
     @property
     def stopped(self) -> bool:

@@ -395,7 +395,7 @@ class CanOpenMaster:
                                          f"{exc}") from exc
         self._reader = LoopReader(self._bus, self._on_message, on_error=self._on_link_error,
                                   timeout=_READER_TIMEOUT_S, loop=loop,
-                                  name=f"{self.name} can reader", receiver=True)
+                                  name=f"{self.name} can reader")
         self._connected = True
 
     def _teardown(self) -> None:

@@ -29,7 +29,6 @@ import time
 from collections.abc import Awaitable, Callable
 
 from dentibot.errors import ConfigError
-from dentibot.io import receivers
 from dentibot.runtime.deadline_timer import deadline_timer
 
 #: the kernel timer wakes the loop this long before the deadline, which it then reaches by
@@ -341,25 +340,14 @@ def raised_priority(nice: int = REALTIME_NICE, fifo_priority: int | None = None)
 
 
 @contextlib.contextmanager
-def others_raised(nice: int = REALTIME_NICE, fifo_priority: int | None = None):
-    """The process's other threads raised while the block runs, where permitted (Linux: per
-    thread, from ``/proc/self/task``); restored on exit. Every thread of the process takes
-    the interpreter lock, and a thread at the ordinary priority that holds it when another
-    job preempts it stalls the raised control thread until it runs again.
-
-    The drivers' receivers (:mod:`dentibot.io.receivers`) run at SCHED_FIFO one below
-    ``fifo_priority`` when it is given (the control thread's own): at a nice value the
-    scheduler may still run another job first for a slice while a receiver holds the lock.
-    Every other thread (the recorder's writer, the live view's publisher: threads that may
-    compute for long) gets the nice value ``nice``. Measured at 500 Hz over the wire with
-    one CPU-bound job beside it (30 s runs): ticks woke more than 1 ms late 1.4 times per
-    run with the receivers at nice -10, 0.6 times at SCHED_FIFO (10 and 16 runs); what is
-    left is mostly the event loop's own work in the slack.
-    """
+def others_raised(nice: int = REALTIME_NICE):
+    """The process's other threads (the drivers' receivers, the recorder's writer) at the nice
+    value ``nice`` while the block runs, where permitted (Linux: per thread, from
+    ``/proc/self/task``); restored on exit. Why: every thread of the process takes the
+    interpreter lock, and a thread at the ordinary priority that holds it when another job
+    preempts it stalls the raised control thread until it runs again."""
     me = threading.get_native_id()
-    fifo_ids = receivers.native_ids() if fifo_priority is not None else set()
-    niced: dict[int, int] = {}
-    scheduled: dict[int, tuple[int, os.sched_param]] = {}
+    before: dict[int, int] = {}
     try:
         tids = [int(t) for t in os.listdir("/proc/self/task")]
     except OSError:
@@ -367,40 +355,27 @@ def others_raised(nice: int = REALTIME_NICE, fifo_priority: int | None = None):
     for tid in tids:
         if tid == me:
             continue
-        if tid in fifo_ids:
-            try:
-                was = os.sched_getscheduler(tid), os.sched_getparam(tid)
-                os.sched_setscheduler(tid, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0),
-                                      os.sched_param(max(1, fifo_priority - 1)))
-                scheduled[tid] = was
-                continue
-            except OSError:                     # not permitted: the nice value below
-                pass
         try:
-            was_nice = os.getpriority(os.PRIO_PROCESS, tid)
-            if nice < was_nice:
+            was = os.getpriority(os.PRIO_PROCESS, tid)
+            if nice < was:
                 os.setpriority(os.PRIO_PROCESS, tid, nice)
-                niced[tid] = was_nice
+                before[tid] = was
         except OSError:                         # gone, or not permitted
             pass
     try:
         yield
     finally:
-        for tid, (policy, param) in scheduled.items():
+        for tid, was in before.items():
             with contextlib.suppress(OSError):
-                os.sched_setscheduler(tid, policy, param)
-        for tid, was_nice in niced.items():
-            with contextlib.suppress(OSError):
-                os.setpriority(os.PRIO_PROCESS, tid, was_nice)
+                os.setpriority(os.PRIO_PROCESS, tid, was)
 
 
 @contextlib.contextmanager
 def realtime_policy(clock: Clock):
     """The control loop's policy under ``clock``. In real time: the thread's priority raised
     (:func:`raised_priority`: SCHED_FIFO when the clock waits on the kernel timer, else a
-    nice value), the process's other threads raised with it (:func:`others_raised`: the
-    drivers' receivers just below it at SCHED_FIFO when it has SCHED_FIFO, the rest to the
-    nice value), and the garbage collector kept out of ticks. Yields
+    nice value), the process's other threads raised to the nice value
+    (:func:`others_raised`), and the garbage collector kept out of ticks. Yields
     ``collect(n)`` to call in the slack after tick ``n``.
 
     In real time the cyclic collector runs only there (young generation every 50 ticks, older
@@ -421,9 +396,8 @@ def realtime_policy(clock: Clock):
             gc.collect(1 if n % 5000 == 0 else 0)
 
     try:
-        fifo = REALTIME_FIFO_PRIORITY if clock.kernel_timer else None
-        with raised_priority(fifo_priority=fifo) as how, others_raised(
-                fifo_priority=fifo if how == "fifo" else None):
+        with raised_priority(fifo_priority=REALTIME_FIFO_PRIORITY if clock.kernel_timer
+                             else None), others_raised():
             yield collect
     finally:
         gc.unfreeze()

@@ -85,7 +85,7 @@ class Runtime:
         self.last: Estimate | None = None
         self.last_row: dict | None = None
         self.mode: Mode = MODES["idle"]
-        self._state = self._ref = self.file_cmd = self.qdot_cmd = None   # qdot: last command
+        self._state = self._ref = self.file_cmd = self.qdot_cmd = None   # qdot: last tick's
         #: events for the next tick (a command the supervisor refused)
         self.pending: list[tuple[str, str | None]] = []
         self._stop = asyncio.Event()

@@ -197,8 +197,9 @@ def _prepare(s: Subject) -> Callable[[ProtocolRunner], None]:
 
 
 class _Meter:
-    """Called after every tick (``on_tick``): peaks, stalls, time past the working length, and fatigue under the
-    file's own strain-life constants (Miner: sum of |revolutions| / N_f(strain))."""
+    """Called after every tick (``on_tick``): peaks, stalls, time past the working length,
+    and fatigue under the file's own strain-life constants (Miner: sum of |revolutions| /
+    N_f(strain))."""
 
     def __init__(self, s: Subject) -> None:
         self.wl = s.working_length_mm
