@@ -20,7 +20,7 @@ import socket
 import threading
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from typing import Any, Self
 
 import can
@@ -218,10 +218,22 @@ class SocketcandBus(can.BusABC):
             timeout = 0.0
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.send_text(self.send_line(msg).encode("ascii"))
+
+    def send_text(self, text: bytes) -> None:
+        """Send ``< send .. >`` lines already encoded (several frames in one TCP write: see
+        :meth:`CanOpenMaster._send_frames`)."""
         try:
-            self._sock.sendall(self.send_line(msg).encode("ascii"))
+            self._sock.sendall(text)
         except OSError as exc:              # TimeoutError included: the peer stopped reading
             raise can.CanOperationError(f"{self.channel_info}: send failed: {exc!r}") from exc
+
+    @classmethod
+    def send_text_of(cls, frames: Sequence[tuple[int, bytes]]) -> bytes:
+        """The ``< send .. >`` lines of standard frames ``(COB-ID, data)``, in order."""
+        return "".join(cls.send_line(can.Message(arbitration_id=cid, data=data,
+                                                 is_extended_id=False))
+                       for cid, data in frames).encode("ascii")
 
     def shutdown(self) -> None:
         super().shutdown()
@@ -336,6 +348,8 @@ class CanOpenMaster:
         self.overruns = 0           # own cycles skipped because the loop was late
         self._link_error: str | None = None
         self._bus: can.BusABC | None = None
+        self._frames_sent: tuple | None = None   # see _send_frames
+        self._frames_text = b""
         self._reader: LoopReader | None = None
         self._sdo_lock: asyncio.Lock | None = None
         #: the outstanding SDO request: (node id, index, sub, future of the answer)
@@ -423,12 +437,33 @@ class CanOpenMaster:
         try:
             bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
         except (can.CanError, OSError) as exc:
-            self.send_errors += 1
-            if self.send_errors <= _LOG_FIRST or self.send_errors % _LOG_EVERY == 0:
-                log.warning(f"{self.log_name} send failed", device=self.name,
-                            cob_id=hex(can_id), error=str(exc), count=self.send_errors)
-            raise DeviceFault(self.name, f"CAN send of COB-ID 0x{can_id:03X} failed: "
-                                         f"{exc}") from exc
+            raise self._send_failed(exc, [can_id]) from exc
+
+    def _send_failed(self, exc: Exception, can_ids: Sequence[int]) -> DeviceFault:
+        """Count and log a failed send; the fault to raise."""
+        self.send_errors += 1
+        ids = ", ".join(f"0x{c:03X}" for c in can_ids)
+        if self.send_errors <= _LOG_FIRST or self.send_errors % _LOG_EVERY == 0:
+            log.warning(f"{self.log_name} send failed", device=self.name, cob_id=ids,
+                        error=str(exc), count=self.send_errors)
+        return DeviceFault(self.name, f"CAN send of COB-ID {ids} failed: {exc}")
+
+    def _send_frames(self, frames: tuple[tuple[int, bytes], ...]) -> None:
+        """Send standard frames ``(COB-ID, data)`` in order, as one TCP write on a socketcand
+        bus (one system call and one wake-up of the server, not one per frame). The text of
+        the last tuple sent is kept: a cycle whose frames did not change costs one write."""
+        bus = self._bus
+        if not isinstance(bus, SocketcandBus):
+            for can_id, data in frames:
+                self._send(can_id, data)
+            return
+        if frames is not self._frames_sent:
+            self._frames_text = bus.send_text_of(frames)
+            self._frames_sent = frames
+        try:
+            bus.send_text(self._frames_text)
+        except (can.CanError, OSError) as exc:
+            raise self._send_failed(exc, [c for c, _ in frames]) from exc
 
     def _send_nmt(self, command: NmtCommand, node_id: int) -> None:
         """An NMT command (CiA 301) to ``node_id`` (0: every node)."""

@@ -371,6 +371,8 @@ class Epos4Driver(CanOpenMaster):
         self._target_vel = 0
         self._target_pos = 0
         self._profile_vel = round(self.move_rpm * self.gear_ratio)
+        self._cycle_key: tuple | None = None     # the image the cycle's frames were packed from
+        self._cycle_frames: tuple = ()
         self._sp = "idle"           # new set-point handshake: idle, request, sent, acked
         self._sp_sync = 0           # number of the SYNC that carried the set-point edge
         self._last_bit4 = False     # bit 4 of the last controlword sent
@@ -643,12 +645,17 @@ class Epos4Driver(CanOpenMaster):
         return cw
 
     def _send_cycle(self) -> None:
-        """RxPDO2, RxPDO1, SYNC (one cycle's frames)."""
-        rx1 = _RX1.pack((self._controlword(), self._target_vel, self._mode), "RxPDO1")
-        rx2 = _RX2.pack((self._target_pos, self._profile_vel), "RxPDO2")
-        self._send(self._cob["RPDO2"], rx2)
-        self._send(self._cob["RPDO1"], rx1)
-        self._send(co.COB_BASE["SYNC"], co.encode_sync())
+        """RxPDO2, RxPDO1, SYNC (one cycle's frames, in one write where the bus allows). The
+        commands change seldom: the frames are packed again only when they do."""
+        key = (self._controlword(), self._target_vel, self._mode, self._target_pos,
+               self._profile_vel)
+        if key != self._cycle_key:
+            rx1 = _RX1.pack(key[:3], "RxPDO1")
+            rx2 = _RX2.pack(key[3:], "RxPDO2")
+            self._cycle_frames = ((self._cob["RPDO2"], rx2), (self._cob["RPDO1"], rx1),
+                                  (co.COB_BASE["SYNC"], co.encode_sync()))
+            self._cycle_key = key
+        self._send_frames(self._cycle_frames)
 
     async def exchange(self, wait: bool = False) -> None:
         """One cycle: send the RxPDOs and a SYNC. The TxPDO answers arrive in the background

@@ -346,6 +346,41 @@ async def _until(pred, timeout: float = 2.0) -> bool:
 # ---------------------------------------------------------------- the driver through it
 
 
+class _Writes:
+    """A socket stand-in that keeps each write."""
+
+    def __init__(self):
+        self.writes: list[bytes] = []
+
+    def sendall(self, data: bytes) -> None:
+        self.writes.append(bytes(data))
+
+
+def test_a_drive_cycle_is_one_write_and_packed_again_only_when_its_commands_change():
+    drv = Epos4Driver(interface="socketcand", channel="vcan0", node_id=1)
+    bus = SocketcandBus.__new__(SocketcandBus)      # no server: its socket is the spy
+    bus._sock, bus.channel_info = _Writes(), "spy"
+    drv._bus = bus
+    drv._send_cycle()
+    drv._send_cycle()
+    drv._target_vel = 4020                           # 60 rpm x 67: a new command
+    drv._send_cycle()
+    writes = bus._sock.writes
+    assert len(writes) == 3                          # one write per cycle
+    assert writes[0] == writes[1] != writes[2]
+    buf = CommandBuffer()
+    frames = [parse_send(parse_command(line)[1]) for line in buf.feed(writes[2])]
+    # RxPDO2 (target position, profile velocity), RxPDO1 (controlword, target velocity,
+    # mode of operation), SYNC: the cycle's order, each line as the server parses it
+    assert [f[0] for f in frames] == [0x301, 0x201, 0x080]
+    assert frames[1][2][2:6] == (4020).to_bytes(4, "little", signed=True)
+    assert frames[2][2] == b""
+    # the same lines python-can's own client would send, frame by frame
+    assert [parse_send(parse_command(convert_can_message_to_ascii_message(
+        can.Message(arbitration_id=c, data=d, is_extended_id=False)))[1]) for c, _, d in frames] \
+        == frames
+
+
 async def test_epos4_driver_through_socketcand():
     ch = channel()
     world = World(WorldConfig(seed=1))
