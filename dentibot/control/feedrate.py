@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 from numba import njit
 
 from dentibot.errors import ConfigError
@@ -104,36 +105,52 @@ class FeedrateOutput:
     reverse: bool  # fz* below the reversal threshold (section 5.4)
 
 
+#: :class:`FeedrateController`'s state array: whether a torque was taken, the last torque
+#: (mNm) and the filtered derivative (mNm/s).
+PD_HAS, PD_TAU, PD_DTAU = 0, 1, 2
+#: Its parameter array: gains, set-point, bounds and the derivative filter's coefficients.
+PD_KP, PD_KD, PD_TAU_D, PD_FZ_MIN, PD_FZ_MAX, PD_D_A, PD_D_B = range(7)
+
+
+@njit(cache=True)
+def pd_step(st, par, tau_mnm: float) -> tuple[float, float]:
+    """One period of the feedrate PD (fig 5.5) on the state ``st`` with the parameters
+    ``par`` (:data:`PD_HAS` ..., :data:`PD_KP` ...): the derivative of the measured torque
+    through ``D(s) = s / (T s + 1)`` (Tustin, ``y[k] = a (u[k] - u[k-1]) + b y[k-1]``, no
+    kick on the first sample), ``fz* = kp (tau_d - tau) - kd dtau`` and ``fz = sat(fz*)``
+    (eq 5.7). Returns ``(fz*, fz)`` (N)."""
+    if st[PD_HAS] == 0.0:
+        st[PD_TAU] = tau_mnm
+        st[PD_HAS] = 1.0
+    st[PD_DTAU] = par[PD_D_A] * (tau_mnm - st[PD_TAU]) + par[PD_D_B] * st[PD_DTAU]
+    st[PD_TAU] = tau_mnm
+    fz_star = par[PD_KP] * (par[PD_TAU_D] - tau_mnm) - par[PD_KD] * st[PD_DTAU]
+    return fz_star, min(max(fz_star, par[PD_FZ_MIN]), par[PD_FZ_MAX])
+
+
 class FeedrateController:
-    """PD on (tau_d - tau) -> fz (fig 5.5), discretised at period ``ts``."""
+    """PD on (tau_d - tau) -> fz (fig 5.5), discretised at period ``ts``; its state in
+    ``st`` and its compiled step :func:`pd_step`."""
 
     def __init__(self, params: FeedrateParams | None = None, ts: float = 0.002) -> None:
-        self.params = params or FeedrateParams()
+        self.params = p = params or FeedrateParams()
         if not ts > 0.0:
             raise ConfigError("control.period_s", ts, "> 0")
         self.ts = ts
         # Filtered derivative of the measured torque, Tustin: D(s) = s / (T s + 1).
-        t = self.params.kd_filter_s
-        self._d_a = 2.0 / (2.0 * t + ts)
-        self._d_b = (2.0 * t - ts) / (2.0 * t + ts)
-        self.reset()
+        t = p.kd_filter_s
+        self.par = np.array([p.kp_n_per_mnm, p.kd_n_s_per_mnm, p.tau_d_mnm, p.fz_min_n,
+                             p.fz_max_n, 2.0 / (2.0 * t + ts), (2.0 * t - ts) / (2.0 * t + ts)])
+        self.st = np.zeros(3)
 
     def reset(self) -> None:
-        self._tau_prev: float | None = None
-        self._dtau = 0.0
+        self.st[:] = 0.0
 
     def step(self, tau_mnm: float) -> FeedrateOutput:
-        p = self.params
         if not math.isfinite(tau_mnm):
             raise ValueError(f"file torque is not finite: {tau_mnm}")
-        if self._tau_prev is None:
-            self._tau_prev = tau_mnm
-        # y[k] = a (u[k] - u[k-1]) + b y[k-1]
-        self._dtau = self._d_a * (tau_mnm - self._tau_prev) + self._d_b * self._dtau
-        self._tau_prev = tau_mnm
-        fz_star = p.kp_n_per_mnm * (p.tau_d_mnm - tau_mnm) - p.kd_n_s_per_mnm * self._dtau
-        fz = min(max(fz_star, p.fz_min_n), p.fz_max_n)
-        return FeedrateOutput(fz_star, fz, fz_star < p.reversal_threshold_n)
+        fz_star, fz = pd_step(self.st, self.par, float(tau_mnm))
+        return FeedrateOutput(fz_star, fz, fz_star < self.params.reversal_threshold_n)
 
 
 def warm_up() -> None:
@@ -144,6 +161,7 @@ def warm_up() -> None:
     file_torque_from_current(1.0, 1.0, 16.0, 67.0)
     file_torque_estimate_mnm(0.1, 100.0, 1.0, 0.0)
     file_torque_estimate_mnm(0.1, 100.0, 1.0, 0.0, 16.0, 67.0)
+    FeedrateController().step(1.0)
 
 
 warm_up()      # at import: before any device streams or loop runs

@@ -21,6 +21,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+from numba import njit
+
 from dentibot.errors import ConfigError
 
 
@@ -42,26 +45,49 @@ class TorqueRiseParams:
                 raise ConfigError(f"limits.torque_rise.{name}", v, "0 < s <= 1")
 
 
+#: :class:`TorqueRise`'s state array: whether a torque was taken, the last one (mNm), the
+#: filtered slope (mNm/s).
+R_HAS, R_LAST, R_SLOPE = 0, 1, 2
+
+
+@njit(cache=True)
+def rise_step(st, a: float, ts: float, min_slope_mnm_s: float, horizon_s: float,
+              tau_mnm: float) -> float:
+    """Take one period's torque into the slope (``st``: :data:`R_HAS` ...; ``a`` the
+    low-pass coefficient ``ts / (filter_s + ts)``); the projected torque (mNm): ``tau +
+    slope * horizon`` while the slope is at least ``min_slope_mnm_s``, else ``tau``."""
+    if st[R_HAS] != 0.0:
+        raw = (tau_mnm - st[R_LAST]) / ts
+        st[R_SLOPE] += a * (raw - st[R_SLOPE])
+    st[R_LAST] = tau_mnm
+    st[R_HAS] = 1.0
+    if st[R_SLOPE] < min_slope_mnm_s:
+        return tau_mnm
+    return tau_mnm + st[R_SLOPE] * horizon_s
+
+
 class TorqueRise:
-    """The file torque's filtered slope (mNm/s) and its projection ``horizon_s`` ahead."""
+    """The file torque's filtered slope (mNm/s) and its projection ``horizon_s`` ahead (state
+    in ``st``, compiled step :func:`rise_step`)."""
 
     def __init__(self, params: TorqueRiseParams = TorqueRiseParams(), ts: float = 0.002) -> None:
         self.p = params
         self.ts = ts
         self._a = ts / (params.filter_s + ts)
-        self.reset()
+        self.st = np.zeros(3)
+
+    @property
+    def slope_mnm_s(self) -> float:
+        return float(self.st[R_SLOPE])
 
     def reset(self) -> None:
-        self.slope_mnm_s = 0.0
-        self._last: float | None = None
+        self.st[:] = 0.0
 
     def step(self, tau_mnm: float) -> float:
         """Take this tick's torque; return the projected torque (mNm): ``tau + slope *
         horizon`` while the slope is steeper than ``min_slope_mnm_s``, else ``tau``."""
-        if self._last is not None:
-            raw = (tau_mnm - self._last) / self.ts
-            self.slope_mnm_s += self._a * (raw - self.slope_mnm_s)
-        self._last = tau_mnm
-        if self.slope_mnm_s < self.p.min_slope_mnm_s:
-            return tau_mnm
-        return tau_mnm + self.slope_mnm_s * self.p.horizon_s
+        return rise_step(self.st, self._a, self.ts, self.p.min_slope_mnm_s, self.p.horizon_s,
+                         float(tau_mnm))
+
+
+TorqueRise().step(0.0)      # compiled (or loaded from the cache) at import

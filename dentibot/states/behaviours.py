@@ -22,6 +22,7 @@ import numpy as np
 from dentibot.control.depth import depth_along
 from dentibot.control.feedrate import FeedrateController
 from dentibot.control.torque_rise import TorqueRise
+from dentibot.states import feeding_kernels as fk
 from dentibot.states.load_calibration import LoadCalibration, TcpRoutine
 from dentibot.states.strategies import Decision, DrillingStrategy
 from dentibot.states.treatment import LEAF_STATES
@@ -207,16 +208,26 @@ class Drilling(Behaviour):
 
     def guard(self, ctx, rt, est):
         th, wl = rt.cfg.thresholds, rt.cfg.plan.working_length_mm
-        if est.force_norm_n > th.patient_moved_n:
+        has_depth = est.depth_mm is not None
+        code = fk.drilling_guard(est.force_norm_n, th.patient_moved_n, has_depth,
+                                 est.depth_mm if has_depth else 0.0, wl + th.depth_margin_mm,
+                                 float(est.wrench_h[2]), th.axial_force_limit_n)
+        if code == fk.GUARD_PATIENT_MOVED:
             ctx.patient_episodes += 1
             return ("patient_moved", f"||f_H|| = {est.force_norm_n:.2f} N > {th.patient_moved_n} N")
-        if est.depth_mm is not None and est.depth_mm > wl + th.depth_margin_mm:
+        if code == fk.GUARD_DEPTH_LIMIT:
             return ("depth_limit", (f"depth {est.depth_mm:.2f} mm > working length {wl} + "
                                     f"{th.depth_margin_mm} mm"))
-        if -est.wrench_h[2] > th.axial_force_limit_n:
+        if code == fk.GUARD_FORCE_LIMIT:
             return ("force_limit", (f"axial force {-est.wrench_h[2]:.2f} N > "
                                     f"{th.axial_force_limit_n} N"))
         return None
+
+
+def spin_up_rpm(handpiece) -> float:
+    """Below this motor speed the file is still spinning up (feeding's torque-rise check is
+    off: the current accelerates the rotor)."""
+    return 0.9 * handpiece.drilling_rpm
 
 
 class Feeding(Drilling):
@@ -239,19 +250,19 @@ class Feeding(Drilling):
         ctx.decision = dec = ctx.strategy.step(tau, depth)
         ctx.decided = rt.ticks
         ev: list[Event] = []
-        ahead = ctx.torque_rise.step(tau)
-        if est.motor_rpm < 0.9 * rt.cfg.handpiece.drilling_rpm:
-            ahead = tau                   # spinning up: the current accelerates the rotor
-        if "reversal_needed" not in dec.events:
-            if tau > th.torque_limit_mnm:
-                ev.append(("reversal_needed", (f"file torque {tau:.1f} mNm > limit "
-                                               f"{th.torque_limit_mnm:.1f} mNm")))
-            elif ahead > th.torque_limit_mnm:
-                r = ctx.torque_rise
-                ev.append(("reversal_needed", (
-                    f"file torque {tau:.1f} mNm rising at {r.slope_mnm_s:.0f} mNm/s: "
-                    f"{ahead:.1f} mNm within {r.p.horizon_s * 1e3:.0f} ms > limit "
-                    f"{th.torque_limit_mnm:.1f} mNm")))
+        r = ctx.torque_rise
+        code, ahead = fk.feeding_checks(
+            fk.REVERSAL_NEEDED if "reversal_needed" in dec.events else 0, float(tau),
+            float(est.motor_rpm), spin_up_rpm(rt.cfg.handpiece), th.torque_limit_mnm, r.st,
+            r._a, r.ts, r.p.min_slope_mnm_s, r.p.horizon_s)
+        if code == fk.REVERSE_LIMIT:
+            ev.append(("reversal_needed", (f"file torque {tau:.1f} mNm > limit "
+                                           f"{th.torque_limit_mnm:.1f} mNm")))
+        elif code == fk.REVERSE_RISE:
+            ev.append(("reversal_needed", (
+                f"file torque {tau:.1f} mNm rising at {r.slope_mnm_s:.0f} mNm/s: "
+                f"{ahead:.1f} mNm within {r.p.horizon_s * 1e3:.0f} ms > limit "
+                f"{th.torque_limit_mnm:.1f} mNm")))
         for e in dec.events:
             ev.append((e, f"tau {tau:.1f} mNm, fz* {dec.fz_star_n:.3f} N, depth {depth:.2f} mm"))
         return ev

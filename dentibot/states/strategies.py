@@ -15,10 +15,14 @@ of f_d = (0, 0, fz, 0, 0, 0) and which events to raise; the state machine does t
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from dentibot.control.feedrate import FeedrateController, FeedrateParams
 from dentibot.errors import ConfigError
+from dentibot.states import feeding_kernels as fk
 
 STRATEGIES = ("automated", "feedrate", "reversal", "none")
 
@@ -87,34 +91,50 @@ class DrillingStrategy:
         return ("working_length_reached",) if depth_mm >= self.wl else ()
 
 
-class FeedrateStrategy(DrillingStrategy):
+class KernelStrategy(DrillingStrategy):
+    """A strategy decided by the compiled :func:`~dentibot.states.feeding_kernels.strategy_decision`
+    (state: the PD's ``pd.st`` and the restart blanking's ``blank``)."""
+
+    kind = fk.CONSTANT
+    reverse = False
+
+    def __init__(self, params, working_length_mm, ts) -> None:
+        super().__init__(params, working_length_mm, ts)
+        self.pd = FeedrateController(params.feedrate, ts)
+        self.blank = np.zeros(1)        # ticks left of the restart blanking (counted down)
+
+    def step(self, tau_mnm: float, depth_mm: float) -> Decision:
+        p = self.p
+        if self.kind == fk.FEEDRATE and not math.isfinite(tau_mnm):
+            raise ValueError(f"file torque is not finite: {tau_mnm}")
+        fz, fz_star, bits = fk.strategy_decision(
+            self.kind, self.reverse, self.pd.st, self.pd.par, self.blank,
+            p.feedrate.reversal_threshold_n, p.constant_fz_n, self.wl, float(tau_mnm),
+            float(depth_mm))
+        return Decision(fz, fz_star, _EVENTS[bits])
+
+
+class FeedrateStrategy(KernelStrategy):
     """PD on the file torque (fig 5.5); ``reverse`` adds the 5.4 reversal trigger."""
+
+    kind = fk.FEEDRATE
 
     def __init__(self, params, working_length_mm, ts, reverse: bool) -> None:
         super().__init__(params, working_length_mm, ts)
-        self.pd = FeedrateController(params.feedrate, ts)
         self.reverse = reverse
-        self._blank = 0
 
     def start_pass(self, depth_mm: float) -> None:
         self.pd.reset()
-        self._blank = round(self.p.restart_blanking_s / self.ts)
-
-    def step(self, tau_mnm: float, depth_mm: float) -> Decision:
-        out = self.pd.step(tau_mnm)
-        events = self._at_wl(depth_mm)
-        self._blank -= 1
-        if self.reverse and out.reverse and not events and self._blank < 0:
-            events = ("reversal_needed",)
-        return Decision(out.fz_n, out.fz_star_n, events)
+        self.blank[0] = round(self.p.restart_blanking_s / self.ts)
 
 
-class ConstantFeed(DrillingStrategy):
+class ConstantFeed(KernelStrategy):
     """Constant feed force, no regulation (the ``none`` ablation)."""
 
-    def step(self, tau_mnm: float, depth_mm: float) -> Decision:
-        fz = self.p.constant_fz_n
-        return Decision(fz, fz, self._at_wl(depth_mm))
+
+#: A strategy's event bits as the machine's triggers.
+_EVENTS = {0: (), fk.WL_REACHED: ("working_length_reached",),
+           fk.REVERSAL_NEEDED: ("reversal_needed",)}
 
 
 class SectionedReversal(DrillingStrategy):
