@@ -134,6 +134,15 @@ def run_protocol(protocol: Protocol, tap: Callable[[dict, ProtocolRunner], None]
         if cancel is not None and cancel.is_set():
             r.abort("cancelled")
 
+    bulk = getattr(on_tick, "ticks", None)
+    if bulk is not None:             # it takes compiled feeding ticks in bulk too
+        def ticks(r: ProtocolRunner, out, n: int, k0: int) -> None:
+            bulk(r, out, n, k0)
+            if cancel is not None and cancel.is_set():
+                r.abort("cancelled")
+
+        after.ticks = ticks
+
     runner = ProtocolRunner(protocol, no_record=True,
                             tap=None if tap is None else (lambda row: tap(row, runner)),
                             on_tick=after, live_summary=feed_summary,

@@ -20,6 +20,7 @@ import numpy as np
 import structlog
 
 from dentibot.app.device_bounds import stale_bound_conflict
+from dentibot.app.drill_loop import DrillLoop
 from dentibot.app.procedure import Procedure
 from dentibot.app.steps import Aborted, StepExecutor
 from dentibot.app.tracking import sim_tracking, tracked_config
@@ -317,6 +318,11 @@ class ProtocolRunner:
             rt.on_tick = lambda _rt: self._on_tick(self)
         if not (self._live_summary or self.recorder or self.live or self._tap or self.progress):
             rt.sink = None                      # nobody reads rows: none is built
+            bulk = getattr(self._on_tick, "ticks", None)
+            if bulk is not None and proc.world is not None and proc.drive:
+                # feeding ticks compiled, many per call (the reader takes them in bulk)
+                rt.on_ticks = lambda out, n, k0: bulk(self, out, n, k0)
+                rt.fused = DrillLoop(proc.world, proc.gate, proc.clock)
         steps = StepExecutor(proc, aborted=lambda: bool(self._abort_reason))
         try:
             for i, step in enumerate(p.steps):

@@ -264,6 +264,12 @@ class LockStepClock(Clock):
                 await self._wake.wait()
         return True
 
+    def stepped(self, ticks: int) -> None:
+        """``ticks`` granted ticks' steps were taken by their owner (the compiled drilling
+        loop steps the world between its ticks itself)."""
+        self._credits -= ticks
+        self._k += ticks
+
     async def wait_first(self) -> None:
         """Before the first tick: held, it takes a granted tick too (no world step)."""
         if await self._granted():

@@ -28,7 +28,7 @@ from dentibot.runtime.config import RuntimeConfig
 from dentibot.runtime.estimate import Devices, Estimate, MotorView, estimate
 from dentibot.runtime.rows import telemetry_row
 from dentibot.runtime.supervisor import Finding, Supervisor
-from dentibot.runtime.tool import reference_transforms, tool_matrix
+from dentibot.runtime.tool import reference_transforms, set_tool_tip, tool_matrix
 from dentibot.runtime.tooth import ToothFrame
 from dentibot.states.behaviours import Context, make_behaviours
 from dentibot.states.modes import MODES, Mode, admittance_params, send_file_command
@@ -80,6 +80,9 @@ class Runtime:
         #: ``event_sink(tick, kind, detail)`` gets every event, command and fault as it happens.
         self.event_sink = event_sink
         self.on_tick: Callable[[Runtime], None] | None = None
+        #: whole ticks run before a tick (:mod:`dentibot.app.drill_loop`), their figures' reader
+        self.fused: Callable[[Runtime], int] | None = None
+        self.on_ticks: Callable | None = None
         self.ticks = 0
         self.events_log: list[tuple[int, str, str]] = []   # (tick, kind, detail)
         self.last: Estimate | None = None
@@ -150,20 +153,23 @@ class Runtime:
                   max_ticks: int | None = None,
                   between: Callable[[], Awaitable[None]] | None = None) -> None:
         """Tick until ``until(self)`` is true, ``max_ticks`` ticks ran or ``request_stop``.
-        ``between()`` is awaited after every tick, before waiting for the next one (the
-        procedure's gate: commands and waiters). Real time: priority raised, collector in
-        the slack after a tick (:func:`~dentibot.runtime.clock.realtime_policy`)."""
+        ``between()`` is awaited after every tick (``fused``'s: after its last), before waiting
+        for the next one (the procedure's gate). Real time: priority raised, collector in the
+        slack after a tick (:func:`~dentibot.runtime.clock.realtime_policy`)."""
         self._stop.clear()
         self.clock.start()
         await self.clock.wait_first()
         lateness = 0.0
         n = 0
+        fused = self.fused if until is None and max_ticks is None else None
         with realtime_policy(self.clock) as collect:
             while not self._stop.is_set():
                 t0 = time.perf_counter()
-                await self.tick(lateness)
-                self.stats.add(lateness, time.perf_counter() - t0)
-                n += 1
+                ran = fused(self) if fused is not None else 0
+                if not ran:
+                    await self.tick(lateness)
+                    self.stats.add(lateness, time.perf_counter() - t0)
+                n += ran or 1
                 if (max_ticks is not None and n >= max_ticks) or (
                         until is not None and until(self)):
                     break
@@ -260,13 +266,7 @@ class Runtime:
                                                self.cfg.handpiece, self.ctx.depth_ref)
         return est
 
-    def set_tool_tip(self, tip_6_mm) -> None:
-        """A new tool tip 6p_H (TCP calibration): kinematics, {S}->{H} transforms, config."""
-        tool = dataclasses.replace(self.cfg.tool, tip_6_mm=tuple(float(x) for x in tip_6_mm))
-        self.cfg = dataclasses.replace(self.cfg, tool=tool)
-        self.kin.set_tool(tool_matrix(self.R_6_H, tool.tip_6_mm))
-        if self.gravity is not None:
-            self.set_gravity(self.gravity)
+    set_tool_tip = set_tool_tip
 
     async def _enter(self, state: str, est: Estimate | None) -> None:
         """Entry of ``state``: the mode's arm and file set-up, then the state's behaviour."""

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from dentibot.control.wrench import WrenchTransform
@@ -26,3 +28,13 @@ def reference_transforms(tool: ToolGeometry, mount_angle_deg: float) -> dict[str
         "A": WrenchTransform.for_tool(R, tool.tip_6_mm, q_H_mm=tool.grip_h_mm, **common),
         "B": WrenchTransform.for_tool(R, tool.tip_6_mm, **common),
     }
+
+
+def set_tool_tip(rt, tip_6_mm) -> None:
+    """A new tool tip 6p_H for the control task ``rt`` (TCP calibration): its kinematics,
+    {S}->{H} transforms and configuration (``Runtime.set_tool_tip``)."""
+    tool = dataclasses.replace(rt.cfg.tool, tip_6_mm=tuple(float(x) for x in tip_6_mm))
+    rt.cfg = dataclasses.replace(rt.cfg, tool=tool)
+    rt.kin.set_tool(tool_matrix(rt.R_6_H, tool.tip_6_mm))
+    if rt.gravity is not None:
+        rt.set_gravity(rt.gravity)

@@ -196,7 +196,12 @@ class World:
 
     def phantom_origin_0(self) -> tuple[float, float, float]:
         """Canal orifice (origin of {P}) in {0} now (mm), including patient motion."""
-        off = self.motion.offset_mm(self.t)
+        return self.origin_at(self.t)
+
+    def origin_at(self, t: float) -> tuple[float, float, float]:
+        """Canal orifice in {0} (mm) at time ``t`` of a patient that does not turn (its
+        motion's offset then; the platform where it is now)."""
+        off = self.motion.offset_mm(t)
         pl, pp = self.platform_mm, self._pP
         return (pp[0] + off[0] + pl[0], pp[1] + off[1] + pl[1], pp[2] + off[2] + pl[2])
 
@@ -274,8 +279,13 @@ class World:
                        t, ts)
         self._interaction = None
         if code:
-            self.fractured = FileFractured(wk.FRACTURE_CAUSES[code], t,
-                                           float(ws[_FR_TORQUE]), float(ws[_FR_DEPTH]))
+            self.fracture_from_step(code)
+
+    def fracture_from_step(self, code: int) -> None:
+        """The file broke in the step that just ended (``code``: the step kernel's cause)."""
+        ws = self.ws
+        self.fractured = FileFractured(wk.FRACTURE_CAUSES[code], self.t,
+                                       float(ws[_FR_TORQUE]), float(ws[_FR_DEPTH]))
 
     def _sense(self) -> None:
         """The sensor's reading now (:func:`dentibot.sim.world_kernels.sense`)."""

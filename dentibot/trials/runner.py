@@ -223,21 +223,31 @@ class _Meter:
         if rt.last is None:
             return
         hp = w.handpiece
-        tq = abs(hp.torque_mnm)
+        self._add(abs(hp.torque_mnm), w.fractured is None,
+                  true_depth_mm(w) if w.fractured is None else 0.0, hp.stalled, hp.pos_deg,
+                  w.interaction.max_strain, rt.ticks - 1, w.t, rt.state == FEEDING)
+
+    def ticks(self, runner: ProtocolRunner, out: np.ndarray, n: int, k0: int) -> None:
+        """After ``n`` feeding ticks from tick ``k0`` that ran in one compiled call
+        (:mod:`dentibot.app.drill_loop`): the same figures, tick by tick, from ``out``."""
+        for i, (tq, d, stalled, pos, eps, t) in enumerate(out[:n].tolist()):
+            self._add(tq, True, d, stalled != 0.0, pos, eps, k0 + i, t, True)
+
+    def _add(self, tq: float, intact: bool, d: float, stalled: bool, pos: float, eps: float,
+             tick: int, t: float, feeding: bool) -> None:
+        """One tick's figures: the handpiece's torque magnitude, the file intact, its true
+        depth, stalled, its position, its largest strain; the tick, the world time, feeding."""
         if tq > self.peak:
             self.peak = tq
-        if w.fractured is not None:       # the stub sinks unresisted: nothing to measure
+        if not intact:                    # the stub sinks unresisted: nothing to measure
             return
-        d = true_depth_mm(w)
         if d > self.depth_max:
             self.depth_max = d
         if d > self.wl + OVER_MM:
             self.past_ticks += 1
-        if hp.stalled:
+        if stalled:
             self.stall_ticks += 1
-        pos = hp.pos_deg
         if self.last_pos is not None:
-            eps = w.interaction.max_strain
             if eps > 0.0 and pos != self.last_pos:
                 rev = abs(pos - self.last_pos) / 360.0
                 self.cycles += rev
@@ -245,10 +255,10 @@ class _Meter:
                 if eps > self.peak_strain:
                     self.peak_strain = eps
         self.last_pos = pos
-        if (rt.ticks - 1) % TRACE_EVERY == 0:
-            self.t.append(w.t)
+        if tick % TRACE_EVERY == 0:
+            self.t.append(t)
             self.depth.append(d)
-            self.feeding.append(rt.state == FEEDING)
+            self.feeding.append(feeding)
 
 
 def build_runner(proc: Procedure, tap: Callable[[dict, ProtocolRunner], None] | None = None

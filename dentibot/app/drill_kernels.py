@@ -1,0 +1,198 @@
+"""The built-in simulator's drilling ticks in one compiled call (numba): while a procedure
+feeds the file in lock-step time with nobody reading telemetry rows, tick after tick of
+``treating.drilling.feeding`` runs here, each exactly as the control task runs it
+(:meth:`~dentibot.runtime.control_task.Runtime.tick`): the simulated devices' readings, the
+supervisor's input checks, the estimate, the observers, the estimate's checks, the drilling
+guard, the strategy's decision, feeding's reversal checks, the orientation loop, the
+admittance law, the command's checks, the arm's command, then the world's step.
+
+Every law is the kernel the control task and the world call themselves
+(:mod:`~dentibot.runtime.supervisor_kernels`, :mod:`~dentibot.control.tick_kernels`,
+:mod:`~dentibot.control.admittance_kernels`, :mod:`~dentibot.control.canal_axis_kernels`,
+:mod:`~dentibot.states.feeding_kernels`, :mod:`~dentibot.sim.arm_kernels`,
+:mod:`~dentibot.sim.world_kernels`); what is here is their order, which is the tick's.
+
+The first tick in which anything would happen (a finding, an event, a refused command) is
+not run: the controller's state arrays are put back as they were before it, and the control
+task runs that tick itself. :class:`~dentibot.app.drill_loop.DrillLoop` prepares the arrays
+and brings the Python side up to date.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from dentibot.control.admittance_kernels import command
+from dentibot.control.canal_axis_kernels import feed_scale
+from dentibot.control.canal_axis_kernels import step as axis_step
+from dentibot.control.canal_axis_kernels import twist as axis_twist
+from dentibot.control.depth import depth_along_xyz
+from dentibot.control.tick_kernels import sense
+from dentibot.runtime import supervisor_kernels as sk
+from dentibot.sim.arm_kernels import command_velocity
+from dentibot.sim.world_kernels import step as world_step
+from dentibot.states.feeding_kernels import drilling_guard, feeding_checks, strategy_decision
+
+#: Per-tick figures a study reads after each tick (``out[i]``): the handpiece's torque
+#: (mNm, its magnitude), the tip's true depth along the canal (mm), the motor stalled
+#: (0/1), the file's position (deg), the file's largest bending strain, the world time (s).
+OUT_FIELDS = ("torque_abs_mnm", "true_depth_mm", "stalled", "pos_deg", "max_strain", "t")
+#: The last tick's estimate and commands (``last``): q (6), raw wrench (6), wrench_h (6),
+#: qdot (6), tip (3), axis (3), then the scalars of :data:`LAST_SCALARS`.
+LAST_Q, LAST_RAW, LAST_WH, LAST_QDOT, LAST_TIP, LAST_AXIS, LAST_SCALAR = 0, 6, 12, 18, 24, 27, 30
+LAST_SCALARS = ("force_norm_n", "file_torque_mnm", "motor_rpm", "motor_current_a",
+                "motor_pos_deg", "depth_mm", "fz_n", "fz_star_n")
+LAST_SIZE = LAST_SCALAR + len(LAST_SCALARS)
+
+
+@njit(cache=True)
+def _keep(saved, arrays):
+    """Copy the controller's state arrays (1-D views) into ``saved`` rows."""
+    for i in range(len(arrays)):
+        a = arrays[i]
+        saved[i, :a.shape[0]] = a
+
+
+@njit(cache=True)
+def _restore(saved, arrays):
+    for i in range(len(arrays)):
+        a = arrays[i]
+        a[:] = saved[i, :a.shape[0]]
+
+
+@njit(cache=True)
+def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world, reads,
+                sup, ctl, adm, feed, servo, arm_cmd, out, last, frames_out, jh_out):
+    """Run up to ``n_max`` ticks of feeding from control tick ``k0``, the world at step
+    ``steps0`` (time ``t0``). ``origins[i]``: the canal orifice in {0} at world step
+    ``steps0 + i`` (the patient's motion); ``axis_p``: the canal's axis in {0}. ``state``: the
+    controller's state arrays as 1-D views (kept before each tick, put back when a tick
+    cannot run here). The other tuples hold what each kernel takes (see
+    :class:`~dentibot.app.drill_loop.DrillLoop`).
+
+    Returns ``(ticks run, fracture code)``: the world is stepped after every tick but the
+    last (the control task's clock steps it after its work between ticks); a fracture in a
+    step ends the run after that tick."""
+    (ws, wp, F, dh_w, ast, ap, lims, q, qd, vel_cmd, target, queue_t, queue_v, cst, cp, R, h,
+     s_arr, kappa, b0, b1, b2, cout, hs, hpp, hnoise, ss, sp, snoise) = world
+    (enc_res, i_origin, i_tip, i_omega, i_pos, i_current, i_torque, i_stalled, i_last0,
+     i_status, i_strain, enabled) = reads
+    (fresh, bounds, last_force, jump_n, in_out, sp_st, sp_lim, want_rpm, fr_st, fr_ring,
+     fr_lim, n_recent, forward_rpm, share, fr_out, tp_st, tp_ring, tip_bound, persist_s,
+     disagree, est_lim, file_turning, q_lo_j, q_hi_j, e_out, speed_lim, tip_cap,
+     cmd_out) = sup
+    (dh, tool, ref_h, g_offset, g_gain, to_h, efficiency, friction_a, depth_o, depth_a) = ctl
+    (f_a, f_c, f_v, f_prev, w_prev, half_ts_deg, q_lo, q_hi, sigma, elbow_off, wrist_frame,
+     thresholds, lo_rad, hi_rad, vmax_rad_s, margin_rad, lim_ts) = adm
+    (moved_n, depth_max, axial_n, kind, reverse, pd_st, pd_par, blank, rev_th, const_fz, wl,
+     spin_up, torque_limit, rise_st, rise_a, rise_ts, min_slope, horizon) = feed
+    (has_servo, has_scale, sv_st, sv_par, beam_l, beam_step, beam_0, beam_1, beam_2) = servo
+    (dead_time, i_error) = arm_cmd
+    ff0 = np.zeros(6)
+    ff = np.empty(6)
+    qr = np.empty(6)
+    raw = np.empty(6)
+    code = 0
+    t_w = t0
+    for i in range(n_max):
+        _keep(saved, state)
+        k = k0 + i
+        seq = steps0 + i
+        # 1. the simulated devices' readings (the arm's joints at its encoder's resolution)
+        for j in range(6):
+            qr[j] = np.rint(q[j] / enc_res) * enc_res
+            raw[j] = ss[i_last0 + j]
+        rpm, pos, cur = hs[i_omega], hs[i_pos], hs[i_current]
+        if sk.inputs(fresh, bounds, last_force, k, seq, seq, seq, seq, True, raw, qr, cur, rpm,
+                     pos, int(ss[i_status]), jump_n, in_out):
+            _restore(saved, state)
+            return i, code
+        # 2. the estimate
+        frames, jh, wrench_h, norm, tau, tipax = sense(qr, raw, cur, rpm, dh, tool, ref_h,
+                                                       True, g_offset, g_gain, to_h,
+                                                       efficiency, friction_a)
+        depth = depth_along_xyz(tipax[3, 0], tipax[3, 1], tipax[3, 2], depth_o[0], depth_o[1],
+                                depth_o[2], depth_a[0], depth_a[1], depth_a[2])
+        # the observers, then the estimate's checks
+        bad = sk.spindle(sp_st, sp_lim, lim_ts, False, True, want_rpm, rpm, enabled, tau) != 0
+        at_speed = forward_rpm > 0.0 and abs(rpm - forward_rpm) < share * forward_rpm
+        bad = bad or sk.fracture(fr_st, fr_ring, fr_lim, n_recent, at_speed, tau, depth, True,
+                                 fr_out)
+        if not bad:
+            v = sk.tip_speed(tp_st, tp_ring, tipax[3, 0], tipax[3, 1], tipax[3, 2], lim_ts,
+                             tip_bound)
+            bad = v >= 0.0 and tp_st[sk.T_BAD] * lim_ts >= persist_s
+        if not bad:
+            turning = file_turning and abs(rpm) > 5.0
+            bad = sk.estimate_checks(disagree, est_lim, lim_ts, turning, tau, wrench_h[5], True,
+                                     depth_o[0], depth_o[1], depth_o[2], depth_a[0],
+                                     depth_a[1], depth_a[2], tipax[3, 0], tipax[3, 1],
+                                     tipax[3, 2], wl, qr, q_lo_j, q_hi_j, frames, elbow_off,
+                                     wrist_frame, e_out) != 0
+        # 3. feeding's detection
+        if not bad:
+            bad = drilling_guard(norm, moved_n, True, depth, depth_max, wrench_h[2],
+                                 axial_n) != 0
+        if bad:
+            _restore(saved, state)
+            return i, code
+        fz, fz_star, events = strategy_decision(kind, reverse, pd_st, pd_par, blank, rev_th,
+                                                const_fz, wl, tau, depth)
+        why, _ = feeding_checks(events, tau, rpm, spin_up, torque_limit, rise_st, rise_a,
+                                rise_ts, min_slope, horizon)
+        if events != 0 or why != 0:
+            _restore(saved, state)
+            return i, code
+        # 5. the arm's command: the orientation loop, the feed, the admittance law
+        ff[:] = ff0
+        if has_servo:
+            axis_step(sv_st, sv_par, depth, True, wrench_h, beam_l, beam_step, beam_0, beam_1,
+                      beam_2)
+            if not axis_twist(sv_st, sv_par, ff):
+                ff[:] = ff0
+        if has_scale and fz > 0.0:
+            fz *= feed_scale(sv_st, sv_par)
+        twist, _, qdot, _, _, _, _ = command(f_a, f_c, f_v, f_prev, wrench_h, fz, ff, jh,
+                                             frames, qr, w_prev, half_ts_deg, q_lo, q_hi,
+                                             sigma, elbow_off, wrist_frame, thresholds, lo_rad,
+                                             hi_rad, vmax_rad_s, margin_rad, lim_ts)
+        if sk.command_checks(qdot, twist, speed_lim, False, speed_lim, tip_cap, cmd_out) != 0 \
+                or ast[i_error] != 0.0 or not command_velocity(ast, lims, vel_cmd, queue_t, queue_v,
+                                                         qdot, t_w, dead_time):
+            _restore(saved, state)
+            return i, code
+        # 6. what a study reads after the tick, and the last tick's figures
+        o = origins[i]
+        out[i, 0] = abs(hs[i_torque])
+        out[i, 1] = depth_along_xyz(ws[i_tip], ws[i_tip + 1], ws[i_tip + 2], o[0], o[1], o[2],
+                                    axis_p[0], axis_p[1], axis_p[2])
+        out[i, 2] = hs[i_stalled]
+        out[i, 3] = pos
+        out[i, 4] = cout[i_strain]
+        out[i, 5] = t_w
+        for j in range(6):
+            last[LAST_Q + j] = qr[j]
+            last[LAST_RAW + j] = raw[j]
+            last[LAST_WH + j] = wrench_h[j]
+            last[LAST_QDOT + j] = qdot[j]
+        for j in range(3):
+            last[LAST_TIP + j] = tipax[3, j]
+            last[LAST_AXIS + j] = tipax[2, j]
+        s0 = LAST_SCALAR
+        last[s0], last[s0 + 1], last[s0 + 2], last[s0 + 3] = norm, tau, rpm, cur
+        last[s0 + 4], last[s0 + 5], last[s0 + 6], last[s0 + 7] = pos, depth, fz, fz_star
+        frames_out[:] = frames
+        jh_out[:] = jh
+        if i == n_max - 1:
+            return n_max, code
+        # the world's next step (the clock's, between two ticks)
+        t_w = (seq + 1) * ts
+        for j in range(3):
+            ws[i_origin + j] = origins[i + 1, j]
+        code = world_step(ws, wp, F, dh_w, ast, ap, lims, q, qd, vel_cmd, target, queue_t,
+                          queue_v, cst, cp, R, h, s_arr, kappa, b0, b1, b2, cout, hs, hpp,
+                          hnoise, ss, sp, snoise, t_w, ts)
+        if code != 0:
+            return i + 1, code
+    return n_max, code

@@ -1,0 +1,216 @@
+"""The built-in simulator's feeding ticks, many in one compiled call.
+
+A procedure on the built-in simulator in lock-step time, with nobody reading telemetry rows
+(an in-silico trial, a study that reads the runtime and the world after each tick), spends
+most of its ticks in ``treating.drilling.feeding``, where nothing happens tick after tick but
+the laws themselves. :class:`DrillLoop` runs such ticks in
+:func:`~dentibot.app.drill_kernels.drill_ticks`, which calls the very kernels the control
+task calls, in the tick's order, and stops before the first tick in which anything would
+happen (an event, a finding, a refused command): the control task runs that one itself.
+The outcome is the same, number for number, as the control task's tick after tick.
+
+The control task calls it (``Runtime.fused``) before each tick of a loop that runs without an
+end condition of its own (a procedure's loop); it runs between 0 and :data:`CHUNK` ticks:
+
+- only where the compiled ticks are the control task's own: feeding with a regulated or a
+  constant feed, the admittance at the tip, no patient tracker, the load known, a depth
+  reference, the plain simulated devices of an unpaced lock-step clock, a patient that does
+  not turn, no emergency stop, the drive without fault;
+- never past what the procedure waits for: the clock's granted ticks and the gate's waiters'
+  tick counts (their conditions must change only with the state: :class:`TickGate` checks
+  them after the last tick), nor past the end of the simulator's noise blocks.
+
+``on_ticks(out, n, k0)`` (``Runtime.on_ticks``) replaces ``on_tick`` for the ticks run here
+(``out``: :data:`~dentibot.app.drill_kernels.OUT_FIELDS` per tick).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from dentibot.app import drill_kernels as dk
+from dentibot.control.kinematics import WRIST_CENTRE_FRAME
+from dentibot.runtime.clock import LockStepClock
+from dentibot.runtime.estimate import Estimate
+from dentibot.sim import arm as sim_arm
+from dentibot.sim import ftsensor_kernels as ftk
+from dentibot.sim import handpiece_kernels as hpk
+from dentibot.sim import world_kernels as wk
+from dentibot.sim.devices import SimArm, SimAux, SimForceSensor, SimHandpiece
+from dentibot.sim.ftsensor import NOISE_BLOCK as FT_NOISE_BLOCK
+from dentibot.sim.handpiece import NOISE_BLOCK as HP_NOISE_BLOCK
+from dentibot.states.behaviours import spin_up_rpm
+from dentibot.states.strategies import Decision, KernelStrategy
+
+#: Most ticks in one call: the event loop is served between calls (about 3 ms).
+CHUNK = 256
+FEEDING = "treating.drilling.feeding"
+_STRAIN = 11            # the canal's outcome array: the file's largest bending strain
+
+
+class DrillLoop:
+    """Feeding ticks of ``runtime`` over ``world`` in one compiled call (module docstring);
+    ``gate`` and ``clock`` are the procedure's."""
+
+    def __init__(self, world, gate, clock: LockStepClock) -> None:
+        self.world = world
+        self.gate = gate
+        self.clock = clock
+        self.out = np.zeros((CHUNK, len(dk.OUT_FIELDS)))
+        self.last = np.zeros(dk.LAST_SIZE)
+        self.frames = np.zeros((6, 4, 3))
+        self.jh = np.zeros((6, 6))
+        self.origins = np.zeros((CHUNK + 1, 3))
+        self.ticks_run = 0          # ticks run here so far (for the benchmarks and tests)
+
+    # ------------------------------------------------------------------ eligibility
+    def _budget(self, rt) -> int:
+        """How many ticks may run here now (0: none)."""
+        w, tr, ctx, dev = self.world, rt.treatment, rt.ctx, rt.dev
+        if (rt.sink is not None or (rt.on_tick is not None and rt.on_ticks is None)
+                or rt.pending or tr.state != FEEDING or rt._state != FEEDING
+                or rt.mode.arm != "admittance" or rt.mode.feed != "strategy"
+                or rt.gravity is None or ctx.depth_ref is None or ctx.tooth is not None
+                or not isinstance(ctx.strategy, KernelStrategy) or ctx.torque_rise is None
+                or rt.admittance.ref_h.any() or self.gate.pending):
+            return 0
+        if not (type(dev.arm) is SimArm and type(dev.ft) is SimForceSensor
+                and type(dev.motor) is SimHandpiece and type(dev.aux) is SimAux
+                and dev.tracker is None and dev.arm.world is w and dev.ft.world is w
+                and dev.motor.world is w and dev.aux.world is w):
+            return 0
+        clock = self.clock
+        if clock is not rt.clock or clock._pace is not None or clock._halted:
+            return 0
+        hp = w.handpiece
+        if (w.fractured is not None or hasattr(w.motion, "rotation_at") or w.estop
+                or hp.fault is not None or w.canal._file_key is not w.file):
+            return 0
+        fc = rt.file_cmd
+        sup = rt.supervisor
+        if (fc is None or fc[0] != "vel" or fc != sup.spindle._cmd
+                or sup._joint_bounds is None or sup._joint_bounds[0] is not rt.kin.joint_limits_deg
+                or sup._speed_limits is None or sup._speed_limits[0] is not rt.speed_limits):
+            return 0
+        params = rt.cfg.plan.axis_servo
+        servo = ctx.axis_servo
+        if params is not None and (servo is None or servo.p is not params):
+            return 0
+        n = CHUNK
+        if clock._credits != float("inf"):
+            n = min(n, int(clock._credits))
+        for fut, _until, max_ticks, count, _fn in self.gate._waiters:
+            if fut is not None and fut.done():
+                continue
+            if max_ticks is not None:
+                n = min(n, max_ticks - count)
+        k = max(hp.hs[hpk.S["k"]], w.sensor.ss[ftk.S["k"]])
+        n = min(n, int(min(HP_NOISE_BLOCK, FT_NOISE_BLOCK) - k))
+        return n if n >= 2 else 0
+
+    # ------------------------------------------------------------------ the call
+    def __call__(self, rt) -> int:
+        """Run feeding ticks here; how many ran (each as ``Runtime.tick`` would, the world
+        stepped after each but the last)."""
+        n_max = self._budget(rt)
+        if not n_max:
+            return 0
+        t_start = time.perf_counter()
+        w = self.world
+        arm, canal, hp, sensor = w.arm, w.canal, w.handpiece, w.sensor
+        steps0, ts = w.steps, w.ts
+        origins = self.origins
+        for i in range(n_max):        # the patient's motion, step by step as World.step
+            origins[i] = w.origin_at(w.t if i == 0 else (steps0 + i) * ts)
+        axis_p = np.array(w.from_phantom(canal.t0, point=False))
+        ctx, sup, adm = rt.ctx, rt.supervisor, rt.admittance
+        filt, lim = adm._filter, adm.limiter
+        strat, rise = ctx.strategy, ctx.torque_rise
+        servo = ctx.axis_servo
+        stepping = rt.cfg.plan.axis_servo is not None
+        sp, fr, tp = sup.spindle, sup.fracture, sup.tip_speed
+        th, plan, hpc = rt.cfg.thresholds, rt.cfg.plan, rt.cfg.handpiece
+        fc = rt.file_cmd
+        forward = max(0.0, fc[1])
+        gravity, to_h = rt.gravity, rt._to_h[rt._ref or "B"]
+        o, a = ctx.depth_ref
+        state = [sup._fresh.reshape(-1), sup._last_force, sp._st, fr._st, fr._ring.reshape(-1),
+                 tp._st, tp._ring.reshape(-1), sup._disagree, strat.pd.st, strat.blank,
+                 rise.st, filt.v, filt._f_prev, adm._w_prev]
+        sv_st = sv_par = np.zeros(1)
+        beam = (0.0, 0.0, np.zeros(1), np.zeros(1), np.zeros(1))
+        if servo is not None:
+            sv_st, sv_par, beam = servo.st, servo.par, servo._beam
+            state.append(sv_st)
+        saved = np.zeros((len(state), max(x.shape[0] for x in state)))
+        b0, b1, b2 = canal._beam
+        world_arrays = (w.ws, w.wp, w._F, w.kin._dh_arr, arm.ast, arm.ap, arm.lims, arm._q,
+                        arm._qd, arm._vel_cmd, arm._target, arm._queue_t, arm._queue_v,
+                        canal.st, canal.cp, canal.R, canal._h, canal.s, canal.kappa, b0, b1,
+                        b2, canal._out, hp.hs, hp.hp, hp.noise, sensor.ss, sensor.sp,
+                        sensor.noise)
+        reads = (arm.p.encoder_res_deg, wk.S["origin_x"], wk.S["tip_x"], hpk.S["omega_rpm"],
+                 hpk.S["pos_deg"], hpk.S["current_a"], hpk.S["torque_mnm"], hpk.S["stalled"],
+                 ftk.S["last0"], ftk.S["status"], _STRAIN, bool(hp.enabled))
+        sups = (sup._fresh, sup.bounds, sup._last_force, sup.lim.ft_jump_n, sup._in_out,
+                sp._st, sp._lim, float(fc[1]), fr._st, fr._ring, fr._lim, fr.n_recent,
+                float(forward), fr.lim.speed_tolerance_share, fr._out, tp._st, tp._ring,
+                tp.lim.tip_speed_mm_s, tp.lim.persist_s, sup._disagree, sup._est_lim,
+                rt.mode.file in ("forward", "align"), sup._joint_bounds[1],
+                sup._joint_bounds[2], sup._est_out, sup._speed_limits[1],
+                sup.lim.tip_speed_cap_mm_s, sup._cmd_out)
+        ctl = (adm.robot._dh_arr, adm.robot.tool, adm.ref_h, gravity._offset, gravity._gain,
+               to_h.matrix, float(hpc.efficiency), float(hpc.friction_current_a),
+               np.array(o, dtype=float), np.array(a, dtype=float))
+        adms = (filt._a, filt._c, filt.v, filt._f_prev, adm._w_prev, adm._half_ts_deg,
+                adm._q_lo, adm._q_hi, adm.singular_sigma, adm.robot.elbow_offset_rad,
+                WRIST_CENTRE_FRAME, lim.thresholds, lim.lo_rad, lim.hi_rad, lim.vmax_rad_s,
+                lim.margin_rad, lim.ts)
+        feed = (th.patient_moved_n, plan.working_length_mm + th.depth_margin_mm,
+                th.axial_force_limit_n, strat.kind, strat.reverse, strat.pd.st, strat.pd.par,
+                strat.blank, strat.p.feedrate.reversal_threshold_n, strat.p.constant_fz_n,
+                strat.wl, spin_up_rpm(hpc), th.torque_limit_mnm, rise.st, rise._a, rise.ts,
+                rise.p.min_slope_mnm_s, rise.p.horizon_s)
+        servos = (stepping, servo is not None, sv_st, sv_par, *beam)
+        k0 = rt.ticks
+        n, code = dk.drill_ticks(n_max, k0, steps0, w.t, ts, origins, axis_p, tuple(state),
+                                 saved, world_arrays, reads, sups, ctl, adms, feed, servos,
+                                 (arm._p.vel_dead_time_s, sim_arm._ERROR), self.out,
+                                 self.last, self.frames, self.jh)
+        if n:
+            self._after(rt, n, code, k0, steps0, time.perf_counter() - t_start)
+        return n
+
+    def _after(self, rt, n: int, code: int, k0: int, steps0: int, wall_s: float) -> None:
+        """The Python side brought up to date after ``n`` ticks ran here."""
+        w, last, s0 = self.world, self.last, dk.LAST_SCALAR
+        scal = last[s0:].tolist()
+        q = last[dk.LAST_Q:dk.LAST_Q + 6].copy()
+        tip = tuple(last[dk.LAST_TIP:dk.LAST_TIP + 3].tolist())
+        axis = tuple(last[dk.LAST_AXIS:dk.LAST_AXIS + 3].tolist())
+        rt.last = Estimate(q, last[dk.LAST_RAW:dk.LAST_RAW + 6].copy(),
+                           last[dk.LAST_WH:dk.LAST_WH + 6].copy(), scal[0], scal[1], scal[2],
+                           scal[3], scal[4], tip, axis, scal[5])
+        frames = self.frames.copy()
+        rt.chain, rt.r_0_6 = (self.jh.copy(), frames), frames[5, :3].T
+        rt.qdot_cmd = last[dk.LAST_QDOT:dk.LAST_QDOT + 6].copy()
+        rt.ctx.decision, rt.ctx.decided = Decision(scal[6], scal[7]), k0 + n - 1
+        rt.ctx.pedal, rt.treatment.estop_active = bool(w.pedal), bool(w.estop)
+        rt.ticks = k0 + n
+        per_tick = wall_s / n
+        for _ in range(n):
+            rt.stats.add(0.0, per_tick)
+        if n > 1:                     # the steps between the ticks, as the clock takes them
+            w.steps = steps0 + n - 1
+            w.t = w.steps * w.ts
+            w._interaction = None
+            self.clock.stepped(n - 1)
+            self.gate.skip(n - 1)
+        if code:
+            w.fracture_from_step(code)
+        if rt.on_ticks is not None:
+            rt.on_ticks(self.out, n, k0)
+        self.ticks_run += n
+
