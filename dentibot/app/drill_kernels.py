@@ -71,9 +71,10 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
     cannot run here). The other tuples hold what each kernel takes (see
     :class:`~dentibot.app.drill_loop.DrillLoop`).
 
-    Returns ``(ticks run, fracture code)``: the world is stepped after every tick but the
-    last (the control task's clock steps it after its work between ticks); a fracture in a
-    step ends the run after that tick."""
+    Returns ``(ticks run, world steps taken, fracture code)``. Run to ``n_max``, the world is
+    stepped after every tick but the last (the control task's clock steps it after its work
+    between ticks). Stopped before a tick, or by a fracture in a step, the world has been
+    stepped after the last tick run too: the next tick is due at once."""
     (ws, wp, F, dh_w, ast, ap, lims, q, qd, vel_cmd, target, queue_t, queue_v, cst, cp, R, h,
      s_arr, kappa, b0, b1, b2, cout, hs, hpp, hnoise, ss, sp, snoise) = world
     (enc_res, i_origin, i_tip, i_omega, i_pos, i_current, i_torque, i_stalled, i_last0,
@@ -107,7 +108,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
         if sk.inputs(fresh, bounds, last_force, k, seq, seq, seq, seq, True, raw, qr, cur, rpm,
                      pos, int(ss[i_status]), jump_n, in_out):
             _restore(saved, state)
-            return i, code
+            return i, i, code
         # 2. the estimate
         frames, jh, wrench_h, norm, tau, tipax = sense(qr, raw, cur, rpm, dh, tool, ref_h,
                                                        True, g_offset, g_gain, to_h,
@@ -136,14 +137,14 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
                                  axial_n) != 0
         if bad:
             _restore(saved, state)
-            return i, code
+            return i, i, code
         fz, fz_star, events = strategy_decision(kind, reverse, pd_st, pd_par, blank, rev_th,
                                                 const_fz, wl, tau, depth)
         why, _ = feeding_checks(events, tau, rpm, spin_up, torque_limit, rise_st, rise_a,
                                 rise_ts, min_slope, horizon)
         if events != 0 or why != 0:
             _restore(saved, state)
-            return i, code
+            return i, i, code
         # 5. the arm's command: the orientation loop, the feed, the admittance law
         ff[:] = ff0
         if has_servo:
@@ -151,9 +152,10 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
                       beam_2)
             if not axis_twist(sv_st, sv_par, ff):
                 ff[:] = ff0
-        if has_scale and fz > 0.0:
-            fz *= feed_scale(sv_st, sv_par)
-        twist, _, qdot, _, _, _, _ = command(f_a, f_c, f_v, f_prev, wrench_h, fz, ff, jh,
+        feed = fz
+        if has_scale and feed > 0.0:
+            feed *= feed_scale(sv_st, sv_par)
+        twist, _, qdot, _, _, _, _ = command(f_a, f_c, f_v, f_prev, wrench_h, feed, ff, jh,
                                              frames, qr, w_prev, half_ts_deg, q_lo, q_hi,
                                              sigma, elbow_off, wrist_frame, thresholds, lo_rad,
                                              hi_rad, vmax_rad_s, margin_rad, lim_ts)
@@ -161,7 +163,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
                 or ast[i_error] != 0.0 or not command_velocity(ast, lims, vel_cmd, queue_t, queue_v,
                                                          qdot, t_w, dead_time):
             _restore(saved, state)
-            return i, code
+            return i, i, code
         # 6. what a study reads after the tick, and the last tick's figures
         o = origins[i]
         out[i, 0] = abs(hs[i_torque])
@@ -185,7 +187,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
         frames_out[:] = frames
         jh_out[:] = jh
         if i == n_max - 1:
-            return n_max, code
+            return n_max, n_max - 1, code
         # the world's next step (the clock's, between two ticks)
         t_w = (seq + 1) * ts
         for j in range(3):
@@ -194,5 +196,5 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
                           queue_v, cst, cp, R, h, s_arr, kappa, b0, b1, b2, cout, hs, hpp,
                           hnoise, ss, sp, snoise, t_w, ts)
         if code != 0:
-            return i + 1, code
-    return n_max, code
+            return i + 1, i + 1, code
+    return n_max, n_max - 1, code

@@ -111,9 +111,10 @@ class DrillLoop:
         return n if n >= 2 else 0
 
     # ------------------------------------------------------------------ the call
-    def __call__(self, rt) -> int:
+    async def __call__(self, rt) -> int:
         """Run feeding ticks here; how many ran (each as ``Runtime.tick`` would, the world
-        stepped after each but the last)."""
+        stepped after each but the last). Where the compiled ticks stopped before a tick with
+        the world already stepped for it, that tick is the control task's, run from here."""
         n_max = self._budget(rt)
         if not n_max:
             return 0
@@ -175,15 +176,23 @@ class DrillLoop:
                 rise.p.min_slope_mnm_s, rise.p.horizon_s)
         servos = (stepping, servo is not None, sv_st, sv_par, *beam)
         k0 = rt.ticks
-        n, code = dk.drill_ticks(n_max, k0, steps0, w.t, ts, origins, axis_p, tuple(state),
-                                 saved, world_arrays, reads, sups, ctl, adms, feed, servos,
-                                 (arm._p.vel_dead_time_s, sim_arm._ERROR), self.out,
-                                 self.last, self.frames, self.jh)
-        if n:
-            self._after(rt, n, code, k0, steps0, time.perf_counter() - t_start)
+        n, steps, code = dk.drill_ticks(n_max, k0, steps0, w.t, ts, origins, axis_p,
+                                        tuple(state), saved, world_arrays, reads, sups, ctl,
+                                        adms, feed, servos,
+                                        (arm._p.vel_dead_time_s, sim_arm._ERROR), self.out,
+                                        self.last, self.frames, self.jh)
+        if not n:
+            return 0
+        self._after(rt, n, steps, code, k0, steps0, time.perf_counter() - t_start)
+        if steps == n:                # the next tick is due: the control task's own
+            t0 = time.perf_counter()
+            await rt.tick(0.0)
+            rt.stats.add(0.0, time.perf_counter() - t0)
+            n += 1
         return n
 
-    def _after(self, rt, n: int, code: int, k0: int, steps0: int, wall_s: float) -> None:
+    def _after(self, rt, n: int, steps: int, code: int, k0: int, steps0: int,
+               wall_s: float) -> None:
         """The Python side brought up to date after ``n`` ticks ran here."""
         w, last, s0 = self.world, self.last, dk.LAST_SCALAR
         scal = last[s0:].tolist()
@@ -202,12 +211,12 @@ class DrillLoop:
         per_tick = wall_s / n
         for _ in range(n):
             rt.stats.add(0.0, per_tick)
-        if n > 1:                     # the steps between the ticks, as the clock takes them
-            w.steps = steps0 + n - 1
+        if steps:                     # the steps between the ticks, as the clock takes them
+            w.steps = steps0 + steps
             w.t = w.steps * w.ts
             w._interaction = None
-            self.clock.stepped(n - 1)
-            self.gate.skip(n - 1)
+            self.clock.stepped(steps)
+            self.gate.skip(steps)
         if code:
             w.fracture_from_step(code)
         if rt.on_ticks is not None:

@@ -81,7 +81,7 @@ class Runtime:
         self.event_sink = event_sink
         self.on_tick: Callable[[Runtime], None] | None = None
         #: whole ticks run before a tick (:mod:`dentibot.app.drill_loop`), their figures' reader
-        self.fused: Callable[[Runtime], int] | None = None
+        self.fused: Callable[[Runtime], Awaitable[int]] | None = None
         self.on_ticks: Callable | None = None
         self.ticks = 0
         self.events_log: list[tuple[int, str, str]] = []   # (tick, kind, detail)
@@ -165,7 +165,7 @@ class Runtime:
         with realtime_policy(self.clock) as collect:
             while not self._stop.is_set():
                 t0 = time.perf_counter()
-                ran = fused(self) if fused is not None else 0
+                ran = await fused(self) if fused is not None else 0
                 if not ran:
                     await self.tick(lateness)
                     self.stats.add(lateness, time.perf_counter() - t0)
