@@ -1,10 +1,11 @@
 """The built-in simulator's drilling ticks in one compiled call (numba): while a procedure
-feeds the file in lock-step time with nobody reading telemetry rows, tick after tick of
-``treating.drilling.feeding`` runs here, each exactly as the control task runs it
-(:meth:`~dentibot.runtime.control_task.Runtime.tick`): the simulated devices' readings, the
-supervisor's input checks, the estimate, the observers, the estimate's checks, the drilling
-guard, the strategy's decision, feeding's reversal checks, the orientation loop, the
-admittance law, the command's checks, the arm's command, then the world's step.
+feeds or withdraws the file in lock-step time with nobody reading telemetry rows, tick after
+tick of ``treating.drilling.feeding`` or ``treating.retracting`` runs here, each exactly as the
+control task runs it (:meth:`~dentibot.runtime.control_task.Runtime.tick`): the simulated
+devices' readings, the supervisor's input checks, the estimate, the observers, the estimate's
+checks, the state's detection (feeding: the drilling guard, the strategy's decision, feeding's
+reversal checks; retracting: its end, the overload), the orientation loop, the admittance
+law, the command's checks, the arm's command, then the world's step.
 
 Every law is the kernel the control task and the world call themselves
 (:mod:`~dentibot.runtime.supervisor_kernels`, :mod:`~dentibot.control.tick_kernels`,
@@ -32,7 +33,13 @@ from dentibot.control.tick_kernels import sense
 from dentibot.runtime import supervisor_kernels as sk
 from dentibot.sim.arm_kernels import command_velocity
 from dentibot.sim.world_kernels import step as world_step
-from dentibot.states.feeding_kernels import drilling_guard, feeding_checks, strategy_decision
+from dentibot.states.feeding_kernels import (
+    drilling_guard,
+    feeding_checks,
+    overloaded,
+    retracted,
+    strategy_decision,
+)
 
 #: Per-tick figures a study reads after each tick (``out[i]``): the handpiece's torque
 #: (mNm, its magnitude), the tip's true depth along the canal (mm), the motor stalled
@@ -86,8 +93,9 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
     (dh, tool, ref_h, g_offset, g_gain, to_h, efficiency, friction_a, depth_o, depth_a) = ctl
     (f_a, f_c, f_v, f_prev, w_prev, half_ts_deg, q_lo, q_hi, sigma, elbow_off, wrist_frame,
      thresholds, lo_rad, hi_rad, vmax_rad_s, margin_rad, lim_ts) = adm
-    (moved_n, depth_max, axial_n, kind, reverse, pd_st, pd_par, blank, rev_th, const_fz, wl,
-     spin_up, torque_limit, rise_st, rise_a, rise_ts, min_slope, horizon) = feed
+    (retracting, retract_to, retract_fz, moved_n, depth_max, axial_n, kind, reverse, pd_st,
+     pd_par, blank, rev_th, const_fz, wl, spin_up, torque_limit, rise_st, rise_a, rise_ts,
+     min_slope, horizon) = feed
     (has_servo, has_scale, sv_st, sv_par, beam_l, beam_step, beam_0, beam_1, beam_2) = servo
     (dead_time, i_error) = arm_cmd
     ff0 = np.zeros(6)
@@ -131,18 +139,22 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
                                      depth_a[1], depth_a[2], tipax[3, 0], tipax[3, 1],
                                      tipax[3, 2], wl, qr, q_lo_j, q_hi_j, frames, elbow_off,
                                      wrist_frame, e_out) != 0
-        # 3. feeding's detection
-        if not bad:
+        # 3. the state's detection: retracting's end and overload, or feeding's guard, the
+        # strategy's decision and feeding's reversal checks
+        fz = fz_star = 0.0
+        if retracting:
+            bad = bad or retracted(True, depth, retract_to) or overloaded(tau, torque_limit,
+                                                                          True)
+        elif not bad:
             bad = drilling_guard(norm, moved_n, True, depth, depth_max, wrench_h[2],
                                  axial_n) != 0
+            if not bad:
+                fz, fz_star, events = strategy_decision(kind, reverse, pd_st, pd_par, blank,
+                                                        rev_th, const_fz, wl, tau, depth)
+                why, _ = feeding_checks(events, tau, rpm, spin_up, torque_limit, rise_st,
+                                        rise_a, rise_ts, min_slope, horizon)
+                bad = events != 0 or why != 0
         if bad:
-            _restore(saved, state)
-            return i, i, code
-        fz, fz_star, events = strategy_decision(kind, reverse, pd_st, pd_par, blank, rev_th,
-                                                const_fz, wl, tau, depth)
-        why, _ = feeding_checks(events, tau, rpm, spin_up, torque_limit, rise_st, rise_a,
-                                rise_ts, min_slope, horizon)
-        if events != 0 or why != 0:
             _restore(saved, state)
             return i, i, code
         # 5. the arm's command: the orientation loop, the feed, the admittance law
@@ -152,7 +164,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
                       beam_2)
             if not axis_twist(sv_st, sv_par, ff):
                 ff[:] = ff0
-        feed = fz
+        feed = -retract_fz if retracting else fz
         if has_scale and feed > 0.0:
             feed *= feed_scale(sv_st, sv_par)
         twist, _, qdot, _, _, _, _ = command(f_a, f_c, f_v, f_prev, wrench_h, feed, ff, jh,

@@ -1,27 +1,30 @@
-"""The built-in simulator's feeding ticks, many in one compiled call.
+"""The built-in simulator's drilling ticks, many in one compiled call.
 
 A procedure on the built-in simulator in lock-step time, with nobody reading telemetry rows
 (an in-silico trial, a study that reads the runtime and the world after each tick), spends
-most of its ticks in ``treating.drilling.feeding``, where nothing happens tick after tick but
-the laws themselves. :class:`DrillLoop` runs such ticks in
-:func:`~dentibot.app.drill_kernels.drill_ticks`, which calls the very kernels the control
-task calls, in the tick's order, and stops before the first tick in which anything would
-happen (an event, a finding, a refused command): the control task runs that one itself.
-The outcome is the same, number for number, as the control task's tick after tick.
+most of its ticks feeding the file (``treating.drilling.feeding``) or withdrawing it
+(``treating.retracting``), where nothing happens tick after tick but the laws themselves.
+:class:`DrillLoop` runs such ticks in :func:`~dentibot.app.drill_kernels.drill_ticks`, which
+calls the very kernels the control task calls, in the tick's order, and stops before the
+first tick in which anything would happen (an event, a finding, a refused command): the
+control task runs that one itself. The outcome is the same, number for number, as the
+control task's tick after tick.
 
-The control task calls it (``Runtime.fused``) before each tick of a loop that runs without an
-end condition of its own (a procedure's loop); it runs between 0 and :data:`CHUNK` ticks:
+The control task awaits it (``Runtime.fused``) before each tick of a loop that runs without
+an end condition of its own (a procedure's loop); it runs between 0 and :data:`CHUNK` ticks:
 
 - only where the compiled ticks are the control task's own: feeding with a regulated or a
-  constant feed, the admittance at the tip, no patient tracker, the load known, a depth
-  reference, the plain simulated devices of an unpaced lock-step clock, a patient that does
-  not turn, no emergency stop, the drive without fault;
+  constant feed, or retracting; the admittance at the tip, no patient tracker, the load
+  known, a depth reference, the plain simulated devices of an unpaced lock-step clock, a
+  patient that does not turn, no emergency stop, the drive without fault;
 - never past what the procedure waits for: the clock's granted ticks and the gate's waiters'
-  tick counts (their conditions must change only with the state: :class:`TickGate` checks
-  them after the last tick), nor past the end of the simulator's noise blocks.
+  tick counts (their conditions must change only with the state: the gate checks them after
+  the last tick), nor past the end of the simulator's noise blocks.
 
 ``on_ticks(out, n, k0)`` (``Runtime.on_ticks``) replaces ``on_tick`` for the ticks run here
-(``out``: :data:`~dentibot.app.drill_kernels.OUT_FIELDS` per tick).
+(``out``: :data:`~dentibot.app.drill_kernels.OUT_FIELDS` per tick, ``k0`` the first tick).
+:class:`~dentibot.app.runner.ProtocolRunner` uses it when nothing reads rows and its
+``on_tick`` has a ``ticks`` method taking them in bulk (the in-silico trials' meter).
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ import numpy as np
 
 from dentibot.app import drill_kernels as dk
 from dentibot.control.kinematics import WRIST_CENTRE_FRAME
+from dentibot.control.torque_rise import TorqueRise
 from dentibot.runtime.clock import LockStepClock
 from dentibot.runtime.estimate import Estimate
 from dentibot.sim import arm as sim_arm
@@ -42,12 +46,19 @@ from dentibot.sim.devices import SimArm, SimAux, SimForceSensor, SimHandpiece
 from dentibot.sim.ftsensor import NOISE_BLOCK as FT_NOISE_BLOCK
 from dentibot.sim.handpiece import NOISE_BLOCK as HP_NOISE_BLOCK
 from dentibot.states.behaviours import spin_up_rpm
-from dentibot.states.strategies import Decision, KernelStrategy
+from dentibot.states.strategies import Decision, KernelStrategy, StrategyParams, make_strategy
 
 #: Most ticks in one call: the event loop is served between calls (about 3 ms).
 CHUNK = 256
-FEEDING = "treating.drilling.feeding"
+FEEDING, RETRACTING = "treating.drilling.feeding", "treating.retracting"
+#: The states whose ticks run here.
+STATES = (FEEDING, RETRACTING)
 _STRAIN = 11            # the canal's outcome array: the file's largest bending strain
+
+
+#: What the kernel takes for the strategy and the torque rise while retracting (unused).
+_NO_STRATEGY = make_strategy(StrategyParams(), 1.0, 0.002)
+_NO_RISE = TorqueRise()
 
 
 class DrillLoop:
@@ -69,12 +80,16 @@ class DrillLoop:
     def _budget(self, rt) -> int:
         """How many ticks may run here now (0: none)."""
         w, tr, ctx, dev = self.world, rt.treatment, rt.ctx, rt.dev
+        state = tr.state
         if (rt.sink is not None or (rt.on_tick is not None and rt.on_ticks is None)
-                or rt.pending or tr.state != FEEDING or rt._state != FEEDING
-                or rt.mode.arm != "admittance" or rt.mode.feed != "strategy"
-                or rt.gravity is None or ctx.depth_ref is None or ctx.tooth is not None
-                or not isinstance(ctx.strategy, KernelStrategy) or ctx.torque_rise is None
-                or rt.admittance.ref_h.any() or self.gate.pending):
+                or rt.pending or state not in STATES or rt._state != state
+                or rt.mode.arm != "admittance" or rt.gravity is None or ctx.depth_ref is None
+                or ctx.tooth is not None or rt.admittance.ref_h.any() or self.gate.pending):
+            return 0
+        if state == FEEDING and (rt.mode.feed != "strategy" or ctx.torque_rise is None
+                                 or not isinstance(ctx.strategy, KernelStrategy)):
+            return 0
+        if state == RETRACTING and rt.mode.feed != "retract":
             return 0
         if not (type(dev.arm) is SimArm and type(dev.ft) is SimForceSensor
                 and type(dev.motor) is SimHandpiece and type(dev.aux) is SimAux
@@ -128,7 +143,10 @@ class DrillLoop:
         axis_p = np.array(w.from_phantom(canal.t0, point=False))
         ctx, sup, adm = rt.ctx, rt.supervisor, rt.admittance
         filt, lim = adm._filter, adm.limiter
+        retracting = rt.treatment.state == RETRACTING
         strat, rise = ctx.strategy, ctx.torque_rise
+        if retracting:                # neither decides while the file is withdrawn
+            strat, rise = _NO_STRATEGY, _NO_RISE
         servo = ctx.axis_servo
         stepping = rt.cfg.plan.axis_servo is not None
         sp, fr, tp = sup.spindle, sup.fracture, sup.tip_speed
@@ -169,7 +187,8 @@ class DrillLoop:
                 adm._q_lo, adm._q_hi, adm.singular_sigma, adm.robot.elbow_offset_rad,
                 WRIST_CENTRE_FRAME, lim.thresholds, lim.lo_rad, lim.hi_rad, lim.vmax_rad_s,
                 lim.margin_rad, lim.ts)
-        feed = (th.patient_moved_n, plan.working_length_mm + th.depth_margin_mm,
+        feed = (retracting, plan.retract_to_mm, plan.retract_fz_n, th.patient_moved_n,
+                plan.working_length_mm + th.depth_margin_mm,
                 th.axial_force_limit_n, strat.kind, strat.reverse, strat.pd.st, strat.pd.par,
                 strat.blank, strat.p.feedrate.reversal_threshold_n, strat.p.constant_fz_n,
                 strat.wl, spin_up_rpm(hpc), th.torque_limit_mnm, rise.st, rise._a, rise.ts,
@@ -205,7 +224,8 @@ class DrillLoop:
         frames = self.frames.copy()
         rt.chain, rt.r_0_6 = (self.jh.copy(), frames), frames[5, :3].T
         rt.qdot_cmd = last[dk.LAST_QDOT:dk.LAST_QDOT + 6].copy()
-        rt.ctx.decision, rt.ctx.decided = Decision(scal[6], scal[7]), k0 + n - 1
+        if rt.treatment.state == FEEDING:
+            rt.ctx.decision, rt.ctx.decided = Decision(scal[6], scal[7]), k0 + n - 1
         rt.ctx.pedal, rt.treatment.estop_active = bool(w.pedal), bool(w.estop)
         rt.ticks = k0 + n
         per_tick = wall_s / n

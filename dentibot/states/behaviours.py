@@ -117,8 +117,7 @@ class Behaviour:
         """A turning file above the torque limit outside feeding is a fault."""
         th = rt.cfg.thresholds
         tau = est.file_torque_mnm
-        if tau > th.torque_limit_mnm and rt.mode.file in ("forward", "align") \
-                and rt.file_cmd != ("stop",):
+        if fk.overloaded(float(tau), th.torque_limit_mnm, turning_commanded(rt)):
             return [("fault", (f"file torque {tau:.1f} mNm > limit "
                                f"{th.torque_limit_mnm:.1f} mNm in {rt.state}"))]
         return []
@@ -222,6 +221,11 @@ class Drilling(Behaviour):
             return ("force_limit", (f"axial force {-est.wrench_h[2]:.2f} N > "
                                     f"{th.axial_force_limit_n} N"))
         return None
+
+
+def turning_commanded(rt) -> bool:
+    """The state turns the file forward (or aligning) and it was not stopped since."""
+    return rt.mode.file in ("forward", "align") and rt.file_cmd != ("stop",)
 
 
 def spin_up_rpm(handpiece) -> float:
@@ -355,7 +359,9 @@ class Retracting(Behaviour):
             rt.treatment.maybe_in = False
 
     def events(self, ctx, rt, est):
-        if est.depth_mm is not None and est.depth_mm <= rt.cfg.plan.retract_to_mm:
+        has_depth = est.depth_mm is not None
+        if fk.retracted(has_depth, est.depth_mm if has_depth else 0.0,
+                        rt.cfg.plan.retract_to_mm):
             ctx.out_point = tuple(est.tip_0)
             if self.unknown_mm is not None:
                 return [("retracted", (

@@ -1,11 +1,13 @@
-"""What ``treating.drilling`` decides every tick, compiled (numba): the drilling guard, the
-feed decision of the regulated and the constant strategies, and the reversal checks of
-``treating.drilling.feeding``.
+"""What the treatment's drilling states decide every tick, compiled (numba): the drilling
+guard, the feed decision of the regulated and the constant strategies, the reversal checks of
+``treating.drilling.feeding``, the end of ``treating.retracting`` and the overload of a
+turning file.
 
-:class:`~dentibot.states.behaviours.Drilling`, :class:`~dentibot.states.behaviours.Feeding`
-and the strategies of :mod:`dentibot.states.strategies` call these with their state arrays
-and turn the codes into events and messages; the compiled drilling loop of the built-in
-simulator calls the same kernels. Each law has this one implementation.
+:class:`~dentibot.states.behaviours.Drilling`, :class:`~dentibot.states.behaviours.Feeding`,
+:class:`~dentibot.states.behaviours.Retracting`, the overload check every state runs and the
+strategies of :mod:`dentibot.states.strategies` call these with their state arrays and turn
+the codes into events and messages; the compiled drilling loop of the built-in simulator calls
+the same kernels. Each law has this one implementation.
 """
 
 from __future__ import annotations
@@ -82,6 +84,18 @@ def feeding_checks(strategy_events: int, tau_mnm: float, motor_rpm: float,
     return 0, ahead
 
 
+@njit(cache=True)
+def overloaded(torque_mnm: float, torque_limit_mnm: float, turning_commanded: bool) -> bool:
+    """A file commanded to turn (forward, or aligning) above the hard torque limit."""
+    return turning_commanded and torque_mnm > torque_limit_mnm
+
+
+@njit(cache=True)
+def retracted(has_depth: bool, depth_mm: float, retract_to_mm: float) -> bool:
+    """The retraction is over: the tip back at ``retract_to_mm`` or shallower."""
+    return has_depth and depth_mm <= retract_to_mm
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels for the argument types the states
     pass, before any loop runs. Called once, at import."""
@@ -91,6 +105,8 @@ def warm_up() -> None:
     drilling_guard(0.0, 1.5, True, 0.0, 16.5, 0.0, 5.0)
     strategy_decision(FEEDRATE, True, z3, np.zeros(7), np.zeros(1), -0.2, 0.3, 16.0, 1.0, 0.0)
     feeding_checks(0, 1.0, 0.0, 270.0, 50.0, z3, 0.3, 0.002, 1000.0, 0.012)
+    overloaded(1.0, 50.0, True)
+    retracted(True, 1.0, 0.5)
 
 
 warm_up()      # at import: before any device streams or loop runs
