@@ -136,8 +136,8 @@ def run_protocol(protocol: Protocol, tap: Callable[[dict, ProtocolRunner], None]
 
     bulk = getattr(on_tick, "ticks", None)
     if bulk is not None:             # it takes compiled feeding ticks in bulk too
-        def ticks(r: ProtocolRunner, out, n: int, k0: int) -> None:
-            bulk(r, out, n, k0)
+        def ticks(r: ProtocolRunner, out, n: int, k0: int, state: str) -> None:
+            bulk(r, out, n, k0, state)
             if cancel is not None and cancel.is_set():
                 r.abort("cancelled")
 

@@ -21,8 +21,9 @@ an end condition of its own (a procedure's loop); it runs between 0 and :data:`C
   tick counts (their conditions must change only with the state: the gate checks them after
   the last tick), nor past the end of the simulator's noise blocks.
 
-``on_ticks(out, n, k0)`` (``Runtime.on_ticks``) replaces ``on_tick`` for the ticks run here
-(``out``: :data:`~dentibot.app.drill_kernels.OUT_FIELDS` per tick, ``k0`` the first tick).
+``on_ticks(out, n, k0, state)`` (``Runtime.on_ticks``) replaces ``on_tick`` for the ticks run
+here (``out``: :data:`~dentibot.app.drill_kernels.OUT_FIELDS` per tick, ``k0`` the first tick,
+``state`` theirs).
 :class:`~dentibot.app.runner.ProtocolRunner` uses it when nothing reads rows and its
 ``on_tick`` has a ``ticks`` method taking them in bulk (the in-silico trials' meter).
 """
@@ -228,9 +229,7 @@ class DrillLoop:
             rt.ctx.decision, rt.ctx.decided = Decision(scal[6], scal[7]), k0 + n - 1
         rt.ctx.pedal, rt.treatment.estop_active = bool(w.pedal), bool(w.estop)
         rt.ticks = k0 + n
-        per_tick = wall_s / n
-        for _ in range(n):
-            rt.stats.add(0.0, per_tick)
+        rt.stats.add_lockstep(n, wall_s)
         if steps:                     # the steps between the ticks, as the clock takes them
             w.steps = steps0 + steps
             w.t = w.steps * w.ts
@@ -240,6 +239,6 @@ class DrillLoop:
         if code:
             w.fracture_from_step(code)
         if rt.on_ticks is not None:
-            rt.on_ticks(self.out, n, k0)
+            rt.on_ticks(self.out, n, k0, rt.treatment.state)
         self.ticks_run += n
 

@@ -321,7 +321,7 @@ class ProtocolRunner:
             bulk = getattr(self._on_tick, "ticks", None)
             if bulk is not None and proc.world is not None and proc.drive:
                 # feeding ticks compiled, many per call (the reader takes them in bulk)
-                rt.on_ticks = lambda out, n, k0: bulk(self, out, n, k0)
+                rt.on_ticks = lambda out, n, k0, state: bulk(self, out, n, k0, state)
                 rt.fused = DrillLoop(proc.world, proc.gate, proc.clock)
         steps = StepExecutor(proc, aborted=lambda: bool(self._abort_reason))
         try:

@@ -73,6 +73,15 @@ class DeadlineStats:
         self.overruns += over
         return over
 
+    def add_lockstep(self, ticks: int, compute_s: float) -> None:
+        """Account ``ticks`` ticks of lock-step time, on time by definition, that took
+        ``compute_s`` together (the simulator's compiled ticks)."""
+        comp_us = compute_s * 1e6 / ticks
+        self.ticks += ticks
+        self.hist[0] += ticks
+        self.max_compute_us = max(self.max_compute_us, comp_us)
+        self._compute_sum_us += compute_s * 1e6
+
     def lateness_quantile_us(self, q: float) -> float:
         """Upper edge of the histogram bin holding quantile ``q`` (a bound, not an estimate)."""
         if not self.ticks:

@@ -53,6 +53,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+from numba import njit
 
 from dentibot.app.batch import run_all, run_protocol, stalled_seconds
 from dentibot.app.runner import ProtocolRunner
@@ -196,26 +197,63 @@ def _prepare(s: Subject) -> Callable[[ProtocolRunner], None]:
     return prepare
 
 
+#: The meter's state array: torque peak, deepest true depth, ticks past the working length,
+#: stalled ticks, Miner damage, bending cycles, peak strain, the last file position and
+#: whether there is one.
+M_PEAK, M_DEPTH, M_PAST, M_STALL, M_DAMAGE, M_CYCLES, M_STRAIN, M_POS, M_HAS_POS = range(9)
+
+
+@njit(cache=True)
+def meter_ticks(st: np.ndarray, rows: np.ndarray, n: int, over_mm: float, c: float,
+                inv_b: float) -> None:
+    """Take ``n`` ticks' figures (``rows``: :data:`~dentibot.app.drill_kernels.OUT_FIELDS`,
+    the file intact) into the meter's state ``st``: peaks, ticks past ``over_mm`` (the
+    working length plus the over-instrumentation margin), stalls, and fatigue: each bent
+    revolution counts ``(eps / c) ** (1 / b)`` (Miner's sum under the file's strain-life
+    law)."""
+    for i in range(n):
+        tq, d, stalled, pos, eps = rows[i, 0], rows[i, 1], rows[i, 2], rows[i, 3], rows[i, 4]
+        if tq > st[M_PEAK]:
+            st[M_PEAK] = tq
+        if d > st[M_DEPTH]:
+            st[M_DEPTH] = d
+        if d > over_mm:
+            st[M_PAST] += 1.0
+        if stalled != 0.0:
+            st[M_STALL] += 1.0
+        if st[M_HAS_POS] != 0.0 and eps > 0.0 and pos != st[M_POS]:
+            rev = abs(pos - st[M_POS]) / 360.0
+            st[M_CYCLES] += rev
+            st[M_DAMAGE] += rev * (eps / c) ** inv_b
+            if eps > st[M_STRAIN]:
+                st[M_STRAIN] = eps
+        st[M_POS] = pos
+        st[M_HAS_POS] = 1.0
+
+
 class _Meter:
-    """Called after every tick (``on_tick``): peaks, stalls, time past the working length,
-    and fatigue under the file's own strain-life constants (Miner: sum of |revolutions| /
-    N_f(strain))."""
+    """Called after every tick (``on_tick``, or ``ticks`` for many at once): peaks, stalls,
+    time past the working length, and fatigue under the file's own strain-life constants
+    (Miner: sum of |revolutions| / N_f(strain)); :func:`meter_ticks` counts."""
 
     def __init__(self, s: Subject) -> None:
         self.wl = s.working_length_mm
         self.inv_b = 1.0 / s.fatigue_b
         self.c = s.fatigue_c
-        self.peak = 0.0
-        self.depth_max = -np.inf
-        self.past_ticks = 0
-        self.stall_ticks = 0
-        self.damage = 0.0
-        self.cycles = 0.0
-        self.peak_strain = 0.0
-        self.last_pos: float | None = None
+        self.st = np.zeros(9)
+        self.st[M_DEPTH] = -np.inf
+        self._row = np.zeros((1, 6))
         self.t: list[float] = []
         self.depth: list[float] = []
         self.feeding: list[bool] = []
+
+    peak = property(lambda self: float(self.st[M_PEAK]))
+    depth_max = property(lambda self: float(self.st[M_DEPTH]))
+    past_ticks = property(lambda self: int(self.st[M_PAST]))
+    stall_ticks = property(lambda self: int(self.st[M_STALL]))
+    damage = property(lambda self: float(self.st[M_DAMAGE]))
+    cycles = property(lambda self: float(self.st[M_CYCLES]))
+    peak_strain = property(lambda self: float(self.st[M_STRAIN]))
 
     def __call__(self, runner: ProtocolRunner) -> None:
         """After each tick (from the first estimate on, as a telemetry row would be)."""
@@ -223,42 +261,26 @@ class _Meter:
         if rt.last is None:
             return
         hp = w.handpiece
-        self._add(abs(hp.torque_mnm), w.fractured is None,
-                  true_depth_mm(w) if w.fractured is None else 0.0, hp.stalled, hp.pos_deg,
-                  w.interaction.max_strain, rt.ticks - 1, w.t, rt.state == FEEDING)
-
-    def ticks(self, runner: ProtocolRunner, out: np.ndarray, n: int, k0: int) -> None:
-        """After ``n`` feeding ticks from tick ``k0`` that ran in one compiled call
-        (:mod:`dentibot.app.drill_loop`): the same figures, tick by tick, from ``out``."""
-        for i, (tq, d, stalled, pos, eps, t) in enumerate(out[:n].tolist()):
-            self._add(tq, True, d, stalled != 0.0, pos, eps, k0 + i, t, True)
-
-    def _add(self, tq: float, intact: bool, d: float, stalled: bool, pos: float, eps: float,
-             tick: int, t: float, feeding: bool) -> None:
-        """One tick's figures: the handpiece's torque magnitude, the file intact, its true
-        depth, stalled, its position, its largest strain; the tick, the world time, feeding."""
-        if tq > self.peak:
-            self.peak = tq
-        if not intact:                    # the stub sinks unresisted: nothing to measure
+        tq = abs(hp.torque_mnm)
+        if w.fractured is not None:       # the stub sinks unresisted: nothing to measure
+            if tq > self.st[M_PEAK]:
+                self.st[M_PEAK] = tq
             return
-        if d > self.depth_max:
-            self.depth_max = d
-        if d > self.wl + OVER_MM:
-            self.past_ticks += 1
-        if stalled:
-            self.stall_ticks += 1
-        if self.last_pos is not None:
-            if eps > 0.0 and pos != self.last_pos:
-                rev = abs(pos - self.last_pos) / 360.0
-                self.cycles += rev
-                self.damage += rev * (eps / self.c) ** self.inv_b
-                if eps > self.peak_strain:
-                    self.peak_strain = eps
-        self.last_pos = pos
-        if tick % TRACE_EVERY == 0:
-            self.t.append(t)
-            self.depth.append(d)
-            self.feeding.append(feeding)
+        row = self._row
+        row[0] = (tq, true_depth_mm(w), hp.stalled, hp.pos_deg, w.interaction.max_strain, w.t)
+        self.ticks(runner, row, 1, rt.ticks - 1, rt.state)
+
+    def ticks(self, runner: ProtocolRunner, out: np.ndarray, n: int, k0: int,
+              state: str) -> None:
+        """``n`` ticks from tick ``k0`` in ``state`` (``out``: their figures, the file intact;
+        many at once where they ran in one compiled call, :mod:`dentibot.app.drill_loop`)."""
+        meter_ticks(self.st, out, n, self.wl + OVER_MM, self.c, self.inv_b)
+        first = -k0 % TRACE_EVERY
+        if first < n:
+            sel = out[first:n:TRACE_EVERY]
+            self.t.extend(sel[:, 5].tolist())
+            self.depth.extend(sel[:, 1].tolist())
+            self.feeding.extend([state == FEEDING] * len(sel))
 
 
 def build_runner(proc: Procedure, tap: Callable[[dict, ProtocolRunner], None] | None = None
