@@ -113,8 +113,8 @@ def run_protocol(protocol: Protocol, tap: Callable[[dict, ProtocolRunner], None]
                  prepare: Callable[[ProtocolRunner], None] | None = None,
                  feed_summary: bool = False,
                  limit_share: float | None = None,
-                 on_tick: Callable[[ProtocolRunner], None] | None = None
-                 ) -> tuple[RunResult, ProtocolRunner]:
+                 on_tick: Callable[[ProtocolRunner], None] | None = None,
+                 compiled_ticks: bool = True) -> tuple[RunResult, ProtocolRunner]:
     """Run ``protocol`` on the built-in simulator without a recording; ``tap(row, runner)``
     sees every telemetry row, ``on_tick(runner)`` is called after every tick.
 
@@ -124,7 +124,8 @@ def run_protocol(protocol: Protocol, tap: Callable[[dict, ProtocolRunner], None]
     time): the result's summary then carries the status and its reason, the figures come from
     the tap. With neither a tap nor ``feed_summary`` no row is built at all (a study that
     reads the runtime and the world in ``on_tick``: a trial procedure ran about 15 % faster).
-    ``limit_share``: see :class:`~dentibot.app.runner.ProtocolRunner`.
+    ``limit_share``, ``compiled_ticks`` (an ``on_tick`` with a ``ticks`` method): see
+    :class:`~dentibot.app.runner.ProtocolRunner`.
     """
     cancel = _CANCEL.get()
 
@@ -146,6 +147,7 @@ def run_protocol(protocol: Protocol, tap: Callable[[dict, ProtocolRunner], None]
     runner = ProtocolRunner(protocol, no_record=True,
                             tap=None if tap is None else (lambda row: tap(row, runner)),
                             on_tick=after, live_summary=feed_summary,
+                            compiled_ticks=compiled_ticks,
                             **({} if limit_share is None else {"limit_share": limit_share}))
     if prepare is not None:
         prepare(runner)

@@ -150,7 +150,10 @@ class ProtocolRunner:
     sees every telemetry row; with ``live_summary=False`` the rows feed only the tap and the
     recording, not the live summary (the summary then carries the status and its reason).
     ``on_tick(runner)`` is called at the end of every tick; when nothing else needs the rows
-    (no recording, live view, live summary, tap or progress) none is built.
+    (no recording, live view, live summary, tap or progress) none is built, and an ``on_tick``
+    with a ``ticks`` method that takes ticks in bulk lets the simulator's feeding and
+    retracting ticks run compiled, many per call (:mod:`dentibot.app.drill_loop`; the same
+    outcome; ``compiled_ticks=False``: tick by tick).
     ``limit_share``: the largest share of the file's strength the protocol's hard torque limit
     may be (90 %; a study of strategies without the runtime's net on the built-in simulator may
     go up to 1). ``live``: a port on 127.0.0.1 where the run's channels are served live over the
@@ -163,6 +166,7 @@ class ProtocolRunner:
                  no_record: bool = False, devices: DevicesConfig | None = None,
                  tap: Callable[[dict], None] | None = None,
                  on_tick: Callable[[ProtocolRunner], None] | None = None,
+                 compiled_ticks: bool = True,
                  live_summary: bool = True,
                  limit_share: float = LIMIT_SHARE_OF_STRENGTH,
                  live: int | None = None, resume_arm: bool = False) -> None:
@@ -186,6 +190,7 @@ class ProtocolRunner:
         self.acc = SummaryAccumulator(rate_hz=protocol.control.rate_hz)
         self._tap = tap
         self._on_tick = on_tick
+        self._compiled_ticks = compiled_ticks
         self._live_summary = live_summary
         calibrate = any(s.kind == "calibrate_load" for s in protocol.steps)
         self.devices = devices
@@ -319,7 +324,8 @@ class ProtocolRunner:
         if not (self._live_summary or self.recorder or self.live or self._tap or self.progress):
             rt.sink = None                      # nobody reads rows: none is built
             bulk = getattr(self._on_tick, "ticks", None)
-            if bulk is not None and proc.world is not None and proc.drive:
+            if bulk is not None and proc.world is not None and proc.drive \
+                    and self._compiled_ticks:
                 # feeding ticks compiled, many per call (the reader takes them in bulk)
                 rt.on_ticks = lambda out, n, k0, state: bulk(self, out, n, k0, state)
                 rt.fused = DrillLoop(proc.world, proc.gate, proc.clock)

@@ -298,13 +298,16 @@ def _limit_share(proc: Procedure) -> float:
     return max(proc.arm.torque_limit_share, LIMIT_SHARE_OF_STRENGTH)
 
 
-def run_procedure(proc: Procedure) -> dict:
-    """Run one procedure (blocking, lock-step time): its row of :data:`SCHEMA`."""
+def run_procedure(proc: Procedure, compiled_ticks: bool = True) -> dict:
+    """Run one procedure (blocking, lock-step time): its row of :data:`SCHEMA`. Its feeding
+    and retracting ticks run compiled, many per call (``compiled_ticks=False``: tick by tick
+    through the control task; the same row, wall time aside)."""
     s, arm = proc.subject, proc.arm
     meter = _Meter(s)
     wall = time.perf_counter()
     result, runner = run_protocol(protocol_for(proc), None, prepare=_prepare(s),
-                                  limit_share=_limit_share(proc), on_tick=meter)
+                                  limit_share=_limit_share(proc), on_tick=meter,
+                                  compiled_ticks=compiled_ticks)
     wall = time.perf_counter() - wall
     w, rt = runner.world, runner.rt
     ts = rt.ts

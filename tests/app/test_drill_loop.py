@@ -47,7 +47,7 @@ def _run(spec_text: str, monkeypatch, compiled: bool) -> tuple[list[dict], dict]
     call, ticks = dl.DrillLoop.__call__, dk.drill_ticks
 
     async def counted(self, rt):
-        n = await call(self, rt) if compiled else 0
+        n = await call(self, rt)
         seen["ticks"] += n
         return n
 
@@ -59,9 +59,11 @@ def _run(spec_text: str, monkeypatch, compiled: bool) -> tuple[list[dict], dict]
     monkeypatch.setattr(dl.DrillLoop, "__call__", counted)
     monkeypatch.setattr(dl.dk, "drill_ticks", kernel)
     spec = parse_trial(spec_text)
-    rows = [rn.run_procedure(p) for a in range(len(spec.arms))
+    rows = [rn.run_procedure(p, compiled_ticks=compiled) for a in range(len(spec.arms))
             for p in rn.procedures_of(spec, a, range(spec.n))]
     monkeypatch.undo()
+    if not compiled:
+        assert seen["ticks"] == 0
     return [{k: v for k, v in r.items() if k != "wall_s"} for r in rows], seen
 
 
