@@ -104,6 +104,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
     raw = np.empty(6)
     code = 0
     t_w = t0
+    last_frames, last_jh = frames_out.copy(), jh_out.copy()
     for i in range(n_max):
         _keep(saved, state)
         k = k0 + i
@@ -116,6 +117,9 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
         if sk.inputs(fresh, bounds, last_force, k, seq, seq, seq, seq, True, raw, qr, cur, rpm,
                      pos, int(ss[i_status]), jump_n, in_out):
             _restore(saved, state)
+            if i:
+                frames_out[:] = last_frames
+                jh_out[:] = last_jh
             return i, i, code
         # 2. the estimate
         frames, jh, wrench_h, norm, tau, tipax = sense(qr, raw, cur, rpm, dh, tool, ref_h,
@@ -156,6 +160,9 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
                 bad = events != 0 or why != 0
         if bad:
             _restore(saved, state)
+            if i:
+                frames_out[:] = last_frames
+                jh_out[:] = last_jh
             return i, i, code
         # 5. the arm's command: the orientation loop, the feed, the admittance law
         ff[:] = ff0
@@ -175,6 +182,9 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
                 or ast[i_error] != 0.0 or not command_velocity(ast, lims, vel_cmd, queue_t, queue_v,
                                                          qdot, t_w, dead_time):
             _restore(saved, state)
+            if i:
+                frames_out[:] = last_frames
+                jh_out[:] = last_jh
             return i, i, code
         # 6. what a study reads after the tick, and the last tick's figures
         o = origins[i]
@@ -196,9 +206,10 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
         s0 = LAST_SCALAR
         last[s0], last[s0 + 1], last[s0 + 2], last[s0 + 3] = norm, tau, rpm, cur
         last[s0 + 4], last[s0 + 5], last[s0 + 6], last[s0 + 7] = pos, depth, fz, fz_star
-        frames_out[:] = frames
-        jh_out[:] = jh
+        last_frames, last_jh = frames, jh
         if i == n_max - 1:
+            frames_out[:] = last_frames
+            jh_out[:] = last_jh
             return n_max, n_max - 1, code
         # the world's next step (the clock's, between two ticks)
         t_w = (seq + 1) * ts
@@ -208,5 +219,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
                           queue_v, cst, cp, R, h, s_arr, kappa, b0, b1, b2, cout, hs, hpp,
                           hnoise, ss, sp, snoise, t_w, ts)
         if code != 0:
+            frames_out[:] = last_frames
+            jh_out[:] = last_jh
             return i + 1, i + 1, code
     return n_max, n_max - 1, code

@@ -74,7 +74,6 @@ class DrillLoop:
         self.last = np.zeros(dk.LAST_SIZE)
         self.frames = np.zeros((6, 4, 3))
         self.jh = np.zeros((6, 6))
-        self.origins = np.zeros((CHUNK + 1, 3))
         self.ticks_run = 0          # ticks run here so far (for the benchmarks and tests)
 
     # ------------------------------------------------------------------ eligibility
@@ -138,9 +137,9 @@ class DrillLoop:
         w = self.world
         arm, canal, hp, sensor = w.arm, w.canal, w.handpiece, w.sensor
         steps0, ts = w.steps, w.ts
-        origins = self.origins
-        for i in range(n_max):        # the patient's motion, step by step as World.step
-            origins[i] = w.origin_at(w.t if i == 0 else (steps0 + i) * ts)
+        times = np.arange(steps0, steps0 + n_max) * ts    # each step's time, as World.step's
+        times[0] = w.t
+        origins = w.origins_at(times)
         axis_p = np.array(w.from_phantom(canal.t0, point=False))
         ctx, sup, adm = rt.ctx, rt.supervisor, rt.admittance
         filt, lim = adm._filter, adm.limiter

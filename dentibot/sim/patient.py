@@ -13,12 +13,22 @@ import math
 from typing import Protocol
 
 import numpy as np
+from numba import njit
 
 
 class MotionProfile(Protocol):
     def offset_mm(self, t: float) -> tuple[float, float, float]:
         """Phantom translation (mm) at time ``t`` (s)."""
         ...
+
+
+def offsets_mm(motion, times: np.ndarray) -> np.ndarray:
+    """The motion's offsets (mm, n x 3) at the ``times`` (s): its own ``offsets_mm`` where it
+    has one (the same numbers, many at once), else ``offset_mm`` time by time."""
+    many = getattr(motion, "offsets_mm", None)
+    if many is not None:
+        return many(times)
+    return np.array([motion.offset_mm(t) for t in times.tolist()], dtype=float).reshape(-1, 3)
 
 
 class StaticPose:
@@ -29,6 +39,9 @@ class StaticPose:
 
     def offset_mm(self, t: float) -> tuple[float, float, float]:
         return self.offset
+
+    def offsets_mm(self, times: np.ndarray) -> np.ndarray:
+        return np.tile(np.array(self.offset), (len(times), 1))
 
 
 #: Thesis experiment 1: square corners (mm) in platform coordinates.
@@ -86,16 +99,32 @@ class HeadMotion:
         self.phase = rng.uniform(0.0, 2.0 * math.pi, (3, n_components))
         # each component amplitude so that the axis rms is amplitude_mm
         self.amp = amplitude_mm * math.sqrt(2.0 / n_components)
-        self._f = self.freq.tolist()
-        self._ph = self.phase.tolist()
-        self._base = [[math.sin(p) for p in row] for row in self._ph]
+        self._base = np.array([[math.sin(p) for p in row] for row in self.phase.tolist()])
+        self._one = np.zeros((1, 3))
 
     def offset_mm(self, t: float) -> tuple[float, float, float]:
-        a = self.amp
-        return tuple(
-            a * sum(math.sin(f * t + p) - b for f, p, b in zip(fr, ph, bs))
-            for fr, ph, bs in zip(self._f, self._ph, self._base)
-        )
+        out = self._one
+        _sway(self.freq, self.phase, self._base, self.amp, np.array([float(t)]), out)
+        return tuple(out[0].tolist())
+
+    def offsets_mm(self, times: np.ndarray) -> np.ndarray:
+        out = np.empty((len(times), 3))
+        _sway(self.freq, self.phase, self._base, self.amp, np.asarray(times, dtype=float), out)
+        return out
+
+
+@njit(cache=True)
+def _sway(freq: np.ndarray, phase: np.ndarray, base: np.ndarray, amp: float,
+          times: np.ndarray, out: np.ndarray) -> None:
+    """:class:`HeadMotion` at the ``times``: per axis ``amp * sum(sin(w t + p) - sin(p))``
+    (zero at t = 0), into ``out`` (n x 3)."""
+    for j in range(times.shape[0]):
+        t = times[j]
+        for axis in range(3):
+            s = 0.0
+            for c in range(freq.shape[1]):
+                s += math.sin(freq[axis, c] * t + phase[axis, c]) - base[axis, c]
+            out[j, axis] = amp * s
 
 
 class BenchSquarePath:

@@ -29,6 +29,7 @@ from dentibot.sim.patient import (
     MotionProfile,
     StaticPose,
     StewartSquare,
+    offsets_mm,
     patient_motion,
 )
 from dentibot.sim.state_view import scalar, vector
@@ -197,6 +198,11 @@ class World:
     def phantom_origin_0(self) -> tuple[float, float, float]:
         """Canal orifice (origin of {P}) in {0} now (mm), including patient motion."""
         return self.origin_at(self.t)
+
+    def origins_at(self, times: np.ndarray) -> np.ndarray:
+        """:meth:`origin_at` at each of the ``times`` (n x 3), the same numbers."""
+        pl, pp = np.array(self.platform_mm, dtype=float), np.array(self._pP, dtype=float)
+        return (pp + offsets_mm(self.motion, times)) + pl
 
     def origin_at(self, t: float) -> tuple[float, float, float]:
         """Canal orifice in {0} (mm) at time ``t`` of a patient that does not turn (its
