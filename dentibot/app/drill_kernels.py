@@ -1,11 +1,12 @@
 """The built-in simulator's drilling ticks in one compiled call (numba): while a procedure
-feeds or withdraws the file in lock-step time with nobody reading telemetry rows, tick after
-tick of ``treating.drilling.feeding`` or ``treating.retracting`` runs here, each exactly as the
-control task runs it (:meth:`~dentibot.runtime.control_task.Runtime.tick`): the simulated
-devices' readings, the supervisor's input checks, the estimate, the observers, the estimate's
-checks, the state's detection (feeding: the drilling guard, the strategy's decision, feeding's
-reversal checks; retracting: its end, the overload), the orientation loop, the admittance
-law, the command's checks, the arm's command, then the world's step.
+feeds, turns back or withdraws the file in lock-step time with nobody reading telemetry rows,
+tick after tick of ``treating.drilling.feeding``, ``treating.drilling.reversing`` or
+``treating.retracting`` runs here, each exactly as the control task runs it
+(:meth:`~dentibot.runtime.control_task.Runtime.tick`): the simulated devices' readings, the
+supervisor's input checks, the estimate, the observers, the estimate's checks, the state's
+detection (feeding: the drilling guard, the strategy's decision, feeding's reversal checks;
+reversing: the guard, the reversal's end; retracting: its end, the overload), the orientation
+loop, the admittance law, the command's checks, the arm's command, then the world's step.
 
 Every law is the kernel the control task and the world call themselves
 (:mod:`~dentibot.runtime.supervisor_kernels`, :mod:`~dentibot.control.tick_kernels`,
@@ -38,9 +39,12 @@ from dentibot.states.feeding_kernels import (
     feeding_checks,
     overloaded,
     retracted,
+    reversal_over,
     strategy_decision,
 )
 
+#: The states run here (``phase``).
+FEEDING, RETRACTING, REVERSING = 0, 1, 2
 #: Per-tick figures a study reads after each tick (``out[i]``): the handpiece's torque
 #: (mNm, its magnitude), the tip's true depth along the canal (mm), the motor stalled
 #: (0/1), the file's position (deg), the file's largest bending strain, the world time (s).
@@ -86,16 +90,16 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
      s_arr, kappa, b0, b1, b2, cout, hs, hpp, hnoise, ss, sp, snoise) = world
     (enc_res, i_origin, i_tip, i_omega, i_pos, i_current, i_torque, i_stalled, i_last0,
      i_status, i_strain, enabled) = reads
-    (fresh, bounds, last_force, jump_n, in_out, sp_st, sp_lim, want_rpm, fr_st, fr_ring,
+    (fresh, bounds, last_force, jump_n, in_out, sp_st, sp_lim, compared, want_rpm, fr_st, fr_ring,
      fr_lim, n_recent, forward_rpm, share, fr_out, tp_st, tp_ring, tip_bound, persist_s,
      disagree, est_lim, file_turning, q_lo_j, q_hi_j, e_out, speed_lim, tip_cap,
      cmd_out) = sup
     (dh, tool, ref_h, g_offset, g_gain, to_h, efficiency, friction_a, depth_o, depth_a) = ctl
     (f_a, f_c, f_v, f_prev, w_prev, half_ts_deg, q_lo, q_hi, sigma, elbow_off, wrist_frame,
      thresholds, lo_rad, hi_rad, vmax_rad_s, margin_rad, lim_ts) = adm
-    (retracting, retract_to, retract_fz, moved_n, depth_max, axial_n, kind, reverse, pd_st,
-     pd_par, blank, rev_th, const_fz, wl, spin_up, torque_limit, rise_st, rise_a, rise_ts,
-     min_slope, horizon) = feed
+    (phase, retract_to, retract_fz, rev_start_deg, rev_start_tick, rev_deg, rev_timeout,
+     moved_n, depth_max, axial_n, kind, reverse, pd_st, pd_par, blank, rev_th, const_fz, wl,
+     spin_up, torque_limit, rise_st, rise_a, rise_ts, min_slope, horizon) = feed
     (has_servo, has_scale, sv_st, sv_par, beam_l, beam_step, beam_0, beam_1, beam_2) = servo
     (dead_time, i_error) = arm_cmd
     ff0 = np.zeros(6)
@@ -128,7 +132,8 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
         depth = depth_along_xyz(tipax[3, 0], tipax[3, 1], tipax[3, 2], depth_o[0], depth_o[1],
                                 depth_o[2], depth_a[0], depth_a[1], depth_a[2])
         # the observers, then the estimate's checks
-        bad = sk.spindle(sp_st, sp_lim, lim_ts, False, True, want_rpm, rpm, enabled, tau) != 0
+        bad = sk.spindle(sp_st, sp_lim, lim_ts, False, compared, want_rpm, rpm, enabled,
+                        tau) != 0
         at_speed = forward_rpm > 0.0 and abs(rpm - forward_rpm) < share * forward_rpm
         bad = bad or sk.fracture(fr_st, fr_ring, fr_lim, n_recent, at_speed, tau, depth, True,
                                  fr_out)
@@ -143,16 +148,19 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
                                      depth_a[1], depth_a[2], tipax[3, 0], tipax[3, 1],
                                      tipax[3, 2], wl, qr, q_lo_j, q_hi_j, frames, elbow_off,
                                      wrist_frame, e_out) != 0
-        # 3. the state's detection: retracting's end and overload, or feeding's guard, the
-        # strategy's decision and feeding's reversal checks
+        # 3. the state's detection: retracting's end and overload; or the drilling guard,
+        # then the reversal's end, or the strategy's decision and feeding's reversal checks
         fz = fz_star = 0.0
-        if retracting:
+        if phase == RETRACTING:
             bad = bad or retracted(True, depth, retract_to) or overloaded(tau, torque_limit,
                                                                           True)
         elif not bad:
             bad = drilling_guard(norm, moved_n, True, depth, depth_max, wrench_h[2],
                                  axial_n) != 0
-            if not bad:
+            if not bad and phase == REVERSING:
+                bad = reversal_over(rev_start_deg, pos, rev_deg, rpm, k, rev_start_tick, lim_ts,
+                                    rev_timeout) != 0
+            elif not bad:
                 fz, fz_star, events = strategy_decision(kind, reverse, pd_st, pd_par, blank,
                                                         rev_th, const_fz, wl, tau, depth)
                 why, _ = feeding_checks(events, tau, rpm, spin_up, torque_limit, rise_st,
@@ -171,7 +179,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
                       beam_2)
             if not axis_twist(sv_st, sv_par, ff):
                 ff[:] = ff0
-        feed = -retract_fz if retracting else fz
+        feed = -retract_fz if phase == RETRACTING else fz     # reversing: 0
         if has_scale and feed > 0.0:
             feed *= feed_scale(sv_st, sv_par)
         twist, _, qdot, _, _, _, _ = command(f_a, f_c, f_v, f_prev, wrench_h, feed, ff, jh,

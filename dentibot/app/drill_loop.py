@@ -51,9 +51,10 @@ from dentibot.states.strategies import Decision, KernelStrategy, StrategyParams,
 
 #: Most ticks in one call: the event loop is served between calls (about 3 ms).
 CHUNK = 256
-FEEDING, RETRACTING = "treating.drilling.feeding", "treating.retracting"
-#: The states whose ticks run here.
-STATES = (FEEDING, RETRACTING)
+FEEDING, REVERSING = "treating.drilling.feeding", "treating.drilling.reversing"
+RETRACTING = "treating.retracting"
+#: The states whose ticks run here, and their phase in the kernel.
+STATES = {FEEDING: dk.FEEDING, RETRACTING: dk.RETRACTING, REVERSING: dk.REVERSING}
 _STRAIN = 11            # the canal's outcome array: the file's largest bending strain
 
 
@@ -91,6 +92,8 @@ class DrillLoop:
             return 0
         if state == RETRACTING and rt.mode.feed != "retract":
             return 0
+        if state == REVERSING and (rt.mode.feed != "zero" or rt.file_cmd != ("reverse",)):
+            return 0
         if not (type(dev.arm) is SimArm and type(dev.ft) is SimForceSensor
                 and type(dev.motor) is SimHandpiece and type(dev.aux) is SimAux
                 and dev.tracker is None and dev.arm.world is w and dev.ft.world is w
@@ -105,7 +108,7 @@ class DrillLoop:
             return 0
         fc = rt.file_cmd
         sup = rt.supervisor
-        if (fc is None or fc[0] != "vel" or fc != sup.spindle._cmd
+        if (fc is None or fc[0] not in ("vel", "reverse") or fc != sup.spindle._cmd
                 or sup._joint_bounds is None or sup._joint_bounds[0] is not rt.kin.joint_limits_deg
                 or sup._speed_limits is None or sup._speed_limits[0] is not rt.speed_limits):
             return 0
@@ -143,16 +146,19 @@ class DrillLoop:
         axis_p = np.array(w.from_phantom(canal.t0, point=False))
         ctx, sup, adm = rt.ctx, rt.supervisor, rt.admittance
         filt, lim = adm._filter, adm.limiter
-        retracting = rt.treatment.state == RETRACTING
+        phase = rt.treatment.state
         strat, rise = ctx.strategy, ctx.torque_rise
-        if retracting:                # neither decides while the file is withdrawn
+        if phase != FEEDING:          # neither decides unless the file is fed
             strat, rise = _NO_STRATEGY, _NO_RISE
+        rev_start, rev_tick = rt.behaviours[phase].start if phase == REVERSING else (0.0, 0)
         servo = ctx.axis_servo
         stepping = rt.cfg.plan.axis_servo is not None
         sp, fr, tp = sup.spindle, sup.fracture, sup.tip_speed
         th, plan, hpc = rt.cfg.thresholds, rt.cfg.plan, rt.cfg.handpiece
         fc = rt.file_cmd
-        forward = max(0.0, fc[1])
+        compared = fc[0] != "reverse"          # the spindle observer's comparison
+        want = fc[1] if fc[0] == "vel" else 0.0
+        forward = max(0.0, want)
         gravity, to_h = rt.gravity, rt._to_h[rt._ref or "B"]
         o, a = ctx.depth_ref
         state = [sup._fresh.reshape(-1), sup._last_force, sp._st, fr._st, fr._ring.reshape(-1),
@@ -174,7 +180,8 @@ class DrillLoop:
                  hpk.S["pos_deg"], hpk.S["current_a"], hpk.S["torque_mnm"], hpk.S["stalled"],
                  ftk.S["last0"], ftk.S["status"], _STRAIN, bool(hp.enabled))
         sups = (sup._fresh, sup.bounds, sup._last_force, sup.lim.ft_jump_n, sup._in_out,
-                sp._st, sp._lim, float(fc[1]), fr._st, fr._ring, fr._lim, fr.n_recent,
+                sp._st, sp._lim, compared, float(want), fr._st, fr._ring, fr._lim,
+                fr.n_recent,
                 float(forward), fr.lim.speed_tolerance_share, fr._out, tp._st, tp._ring,
                 tp.lim.tip_speed_mm_s, tp.lim.persist_s, sup._disagree, sup._est_lim,
                 rt.mode.file in ("forward", "align"), sup._joint_bounds[1],
@@ -187,7 +194,8 @@ class DrillLoop:
                 adm._q_lo, adm._q_hi, adm.singular_sigma, adm.robot.elbow_offset_rad,
                 WRIST_CENTRE_FRAME, lim.thresholds, lim.lo_rad, lim.hi_rad, lim.vmax_rad_s,
                 lim.margin_rad, lim.ts)
-        feed = (retracting, plan.retract_to_mm, plan.retract_fz_n, th.patient_moved_n,
+        feed = (STATES[phase], plan.retract_to_mm, plan.retract_fz_n, float(rev_start),
+                int(rev_tick), hpc.reversal_deg, hpc.reversal_timeout_s, th.patient_moved_n,
                 plan.working_length_mm + th.depth_margin_mm,
                 th.axial_force_limit_n, strat.kind, strat.reverse, strat.pd.st, strat.pd.par,
                 strat.blank, strat.p.feedrate.reversal_threshold_n, strat.p.constant_fz_n,

@@ -287,9 +287,12 @@ class Reversing(Drilling):
         hp = rt.cfg.handpiece
         start_pos, start_tick = self.start
         turned = start_pos - est.motor_pos_deg
-        if turned >= hp.reversal_deg - 1.0 and abs(est.motor_rpm) < 2.0:
+        code = fk.reversal_over(float(start_pos), float(est.motor_pos_deg), hp.reversal_deg,
+                                float(est.motor_rpm), rt.ticks, start_tick, rt.ts,
+                                hp.reversal_timeout_s)
+        if code == fk.REVERSAL_DONE:
             return [("reversal_finished", f"turned back {turned:.1f} deg")]
-        if (rt.ticks - start_tick) * rt.ts > hp.reversal_timeout_s:
+        if code == fk.REVERSAL_TIMEOUT:
             return [("fault", (f"reversal: turned {turned:.1f} of {hp.reversal_deg} deg "
                                f"in {hp.reversal_timeout_s} s (file bound?)"))]
         return []

@@ -1,10 +1,11 @@
 """What the treatment's drilling states decide every tick, compiled (numba): the drilling
 guard, the feed decision of the regulated and the constant strategies, the reversal checks of
-``treating.drilling.feeding``, the end of ``treating.retracting`` and the overload of a
-turning file.
+``treating.drilling.feeding``, the end of a reversal (``treating.drilling.reversing``) and of
+``treating.retracting``, and the overload of a turning file.
 
 :class:`~dentibot.states.behaviours.Drilling`, :class:`~dentibot.states.behaviours.Feeding`,
-:class:`~dentibot.states.behaviours.Retracting`, the overload check every state runs and the
+:class:`~dentibot.states.behaviours.Reversing`, :class:`~dentibot.states.behaviours.Retracting`,
+the overload check every state runs and the
 strategies of :mod:`dentibot.states.strategies` call these with their state arrays and turn
 the codes into events and messages; the compiled drilling loop of the built-in simulator calls
 the same kernels. Each law has this one implementation.
@@ -96,6 +97,23 @@ def retracted(has_depth: bool, depth_mm: float, retract_to_mm: float) -> bool:
     return has_depth and depth_mm <= retract_to_mm
 
 
+#: :func:`reversal_over`'s answers (0: still turning back).
+REVERSAL_DONE, REVERSAL_TIMEOUT = 1, 2
+
+
+@njit(cache=True)
+def reversal_over(start_deg: float, pos_deg: float, reversal_deg: float, motor_rpm: float,
+                  ticks: int, start_tick: int, ts: float, timeout_s: float) -> int:
+    """A reversal (5.2) is done when the file has turned back ``reversal_deg`` (within 1 deg)
+    from ``start_deg`` and stands still (under 2 rpm); it has failed when it takes longer
+    than ``timeout_s`` (a bound file)."""
+    if start_deg - pos_deg >= reversal_deg - 1.0 and abs(motor_rpm) < 2.0:
+        return REVERSAL_DONE
+    if (ticks - start_tick) * ts > timeout_s:
+        return REVERSAL_TIMEOUT
+    return 0
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels for the argument types the states
     pass, before any loop runs. Called once, at import."""
@@ -107,6 +125,7 @@ def warm_up() -> None:
     feeding_checks(0, 1.0, 0.0, 270.0, 50.0, z3, 0.3, 0.002, 1000.0, 0.012)
     overloaded(1.0, 50.0, True)
     retracted(True, 1.0, 0.5)
+    reversal_over(0.0, -90.0, 90.0, 0.0, 10, 0, 0.002, 1.0)
 
 
 warm_up()      # at import: before any device streams or loop runs
