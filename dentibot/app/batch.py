@@ -142,7 +142,7 @@ def run_protocol(protocol: Protocol, tap: Callable[[dict, ProtocolRunner], None]
             if cancel is not None and cancel.is_set():
                 r.abort("cancelled")
 
-        after.ticks = ticks
+        after.ticks, after.every = ticks, getattr(on_tick, "every", None)
 
     runner = ProtocolRunner(protocol, no_record=True,
                             tap=None if tap is None else (lambda row: tap(row, runner)),

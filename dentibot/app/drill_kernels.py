@@ -47,8 +47,11 @@ from dentibot.states.feeding_kernels import (
 FEEDING, RETRACTING, REVERSING = 0, 1, 2
 #: Per-tick figures a study reads after each tick (``out[i]``): the handpiece's torque
 #: (mNm, its magnitude), the tip's true depth along the canal (mm), the motor stalled
-#: (0/1), the file's position (deg), the file's largest bending strain, the world time (s).
-OUT_FIELDS = ("torque_abs_mnm", "true_depth_mm", "stalled", "pos_deg", "max_strain", "t")
+#: (0/1), the file's position (deg), the file's largest bending strain, the world time (s),
+#: the control task's estimate of the file torque (mNm).
+OUT_FIELDS = ("torque_abs_mnm", "true_depth_mm", "stalled", "pos_deg", "max_strain", "t",
+              "est_torque_mnm")
+OUT_TORQUE_ABS, OUT_EST_TORQUE = 0, 6
 #: The last tick's estimate and commands (``last``): q (6), raw wrench (6), wrench_h (6),
 #: qdot (6), tip (3), axis (3), then the scalars of :data:`LAST_SCALARS`.
 LAST_Q, LAST_RAW, LAST_WH, LAST_QDOT, LAST_TIP, LAST_AXIS, LAST_SCALAR = 0, 6, 12, 18, 24, 27, 30
@@ -203,6 +206,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
         out[i, 3] = pos
         out[i, 4] = cout[i_strain]
         out[i, 5] = t_w
+        out[i, 6] = tau
         for j in range(6):
             last[LAST_Q + j] = qr[j]
             last[LAST_RAW + j] = raw[j]

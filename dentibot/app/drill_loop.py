@@ -23,7 +23,8 @@ an end condition of its own (a procedure's loop); it runs between 0 and :data:`C
 
 ``on_ticks(out, n, k0, state)`` (``Runtime.on_ticks``) replaces ``on_tick`` for the ticks run
 here (``out``: :data:`~dentibot.app.drill_kernels.OUT_FIELDS` per tick, ``k0`` the first tick,
-``state`` theirs).
+``state`` theirs); with ``every`` (the reader's ``every``) a call ends at the first tick that
+is a multiple of it, so that a reader can look at the world there.
 :class:`~dentibot.app.runner.ProtocolRunner` uses it when nothing reads rows and its
 ``on_tick`` has a ``ticks`` method taking them in bulk (the in-silico trials' meter).
 """
@@ -67,10 +68,13 @@ class DrillLoop:
     """Feeding ticks of ``runtime`` over ``world`` in one compiled call (module docstring);
     ``gate`` and ``clock`` are the procedure's."""
 
-    def __init__(self, world, gate, clock: LockStepClock) -> None:
+    def __init__(self, world, gate, clock: LockStepClock, every: int | None = None) -> None:
         self.world = world
         self.gate = gate
         self.clock = clock
+        #: a call ends at the first tick that is a multiple of ``every``, if any (the reader
+        #: then looks at the world at that tick)
+        self.every = every
         self.out = np.zeros((CHUNK, len(dk.OUT_FIELDS)))
         self.last = np.zeros(dk.LAST_SIZE)
         self.frames = np.zeros((6, 4, 3))
@@ -124,6 +128,8 @@ class DrillLoop:
                 continue
             if max_ticks is not None:
                 n = min(n, max_ticks - count)
+        if self.every:
+            n = min(n, -rt.ticks % self.every + 1)
         k = max(hp.hs[hpk.S["k"]], w.sensor.ss[ftk.S["k"]])
         n = min(n, int(min(HP_NOISE_BLOCK, FT_NOISE_BLOCK) - k))
         return n if n >= 2 else 0

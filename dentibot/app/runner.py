@@ -328,7 +328,8 @@ class ProtocolRunner:
                     and self._compiled_ticks:
                 # feeding ticks compiled, many per call (the reader takes them in bulk)
                 rt.on_ticks = lambda out, n, k0, state: bulk(self, out, n, k0, state)
-                rt.fused = DrillLoop(proc.world, proc.gate, proc.clock)
+                rt.fused = DrillLoop(proc.world, proc.gate, proc.clock,
+                                     every=getattr(self._on_tick, "every", None))
         steps = StepExecutor(proc, aborted=lambda: bool(self._abort_reason))
         try:
             for i, step in enumerate(p.steps):

@@ -42,6 +42,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from dentibot.control.feedrate import FILE_STRENGTH_MNM
+from dentibot.app import drill_kernels as dk
 from dentibot.app.batch import run_protocol, stalled_seconds
 from dentibot.app.simulated import true_depth_mm
 from dentibot.experiments.common import Check, distribution
@@ -219,6 +220,16 @@ def run_phantom(spec: PreclinicalSpec) -> PhantomRun:
                               "feeding": []}
     protocol = preclinical_protocol(spec)
 
+    def sample(runner) -> None:
+        """The trace at the tick that just ran, when it is one of every ``TRACE_EVERY``."""
+        rt, w = runner.rt, runner.world
+        if (rt.ticks - 1) % TRACE_EVERY == 0:
+            trace["t"].append(w.t)
+            trace["depth"].append(true_depth_mm(w))
+            trace["torque"].append(w.handpiece.torque_mnm)
+            trace["completeness"].append(w.completeness())
+            trace["feeding"].append(rt.state == "treating.drilling.feeding")
+
     def after_tick(runner) -> None:
         rt, w = runner.rt, runner.world
         if rt.last is None:             # before the first estimate (no row either)
@@ -226,12 +237,16 @@ def run_phantom(spec: PreclinicalSpec) -> PhantomRun:
         tq = abs(w.handpiece.torque_mnm)
         peak[0] = max(peak[0], tq)
         peak[1] = max(peak[1], abs(rt.last.file_torque_mnm))
-        if (rt.ticks - 1) % TRACE_EVERY == 0:
-            trace["t"].append(w.t)
-            trace["depth"].append(true_depth_mm(w))
-            trace["torque"].append(w.handpiece.torque_mnm)
-            trace["completeness"].append(w.completeness())
-            trace["feeding"].append(rt.state == "treating.drilling.feeding")
+        sample(runner)
+
+    def ticks(runner, out, n, k0, state) -> None:
+        """Ticks that ran compiled (:mod:`dentibot.app.drill_loop`); the last is the first
+        traced tick among them, if any (``every``)."""
+        peak[0] = max(peak[0], float(out[:n, dk.OUT_TORQUE_ABS].max()))
+        peak[1] = max(peak[1], float(np.abs(out[:n, dk.OUT_EST_TORQUE]).max()))
+        sample(runner)
+
+    after_tick.ticks, after_tick.every = ticks, TRACE_EVERY
 
     wall = time.perf_counter()
     # an ablation's hard limit may be the file's strength itself (no runtime net: the
