@@ -105,7 +105,7 @@ class Sizes:
     realtime_load: int = 1          # CPU-bound jobs beside the real-time loop
     profile_s: float = 20.0
     tick_repeats: int = 3
-    population_n: int = 16
+    population_n: int = 64
     population_round_s: float = 300.0
     population_workers: int | None = None     # None: the machine's cores, two at most
 
