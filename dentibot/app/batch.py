@@ -136,7 +136,7 @@ def run_protocol(protocol: Protocol, tap: Callable[[dict, ProtocolRunner], None]
             r.abort("cancelled")
 
     bulk = getattr(on_tick, "ticks", None)
-    if bulk is not None:             # it takes compiled feeding ticks in bulk too
+    if bulk is not None:             # it takes compiled drilling ticks in bulk too
         def ticks(r: ProtocolRunner, out, n: int, k0: int, state: str) -> None:
             bulk(r, out, n, k0, state)
             if cancel is not None and cancel.is_set():

@@ -2,8 +2,9 @@
 
 A procedure on the built-in simulator in lock-step time, with nobody reading telemetry rows
 (an in-silico trial, a study that reads the runtime and the world after each tick), spends
-most of its ticks feeding the file (``treating.drilling.feeding``) or withdrawing it
-(``treating.retracting``), where nothing happens tick after tick but the laws themselves.
+most of its ticks feeding the file (``treating.drilling.feeding``), turning it back
+(``treating.drilling.reversing``) or withdrawing it (``treating.retracting``), where nothing
+happens tick after tick but the laws themselves.
 :class:`DrillLoop` runs such ticks in :func:`~dentibot.app.drill_kernels.drill_ticks`, which
 calls the very kernels the control task calls, in the tick's order, and stops before the
 first tick in which anything would happen (an event, a finding, a refused command): the
@@ -14,7 +15,7 @@ The control task awaits it (``Runtime.fused``) before each tick of a loop that r
 an end condition of its own (a procedure's loop); it runs between 0 and :data:`CHUNK` ticks:
 
 - only where the compiled ticks are the control task's own: feeding with a regulated or a
-  constant feed, or retracting; the admittance at the tip, no patient tracker, the load
+  constant feed, reversing, retracting; the admittance at the tip, no patient tracker, the load
   known, a depth reference, the plain simulated devices of an unpaced lock-step clock, a
   patient that does not turn, no emergency stop, the drive without fault;
 - never past what the procedure waits for: the clock's granted ticks and the gate's waiters'
@@ -26,7 +27,8 @@ here (``out``: :data:`~dentibot.app.drill_kernels.OUT_FIELDS` per tick, ``k0`` t
 ``state`` theirs); with ``every`` (the reader's ``every``) a call ends at the first tick that
 is a multiple of it, so that a reader can look at the world there.
 :class:`~dentibot.app.runner.ProtocolRunner` uses it when nothing reads rows and its
-``on_tick`` has a ``ticks`` method taking them in bulk (the in-silico trials' meter).
+``on_tick`` has a ``ticks`` method taking them in bulk (the in-silico trials' meter, the
+pre-clinical experiment's trace).
 """
 
 from __future__ import annotations
@@ -59,14 +61,14 @@ STATES = {FEEDING: dk.FEEDING, RETRACTING: dk.RETRACTING, REVERSING: dk.REVERSIN
 _STRAIN = 11            # the canal's outcome array: the file's largest bending strain
 
 
-#: What the kernel takes for the strategy and the torque rise while retracting (unused).
+#: What the kernel takes for the strategy and the torque rise outside feeding (unused).
 _NO_STRATEGY = make_strategy(StrategyParams(), 1.0, 0.002)
 _NO_RISE = TorqueRise()
 
 
 class DrillLoop:
-    """Feeding ticks of ``runtime`` over ``world`` in one compiled call (module docstring);
-    ``gate`` and ``clock`` are the procedure's."""
+    """A procedure's drilling ticks over ``world``, many per compiled call (module
+    docstring); ``gate`` and ``clock`` are the procedure's."""
 
     def __init__(self, world, gate, clock: LockStepClock, every: int | None = None) -> None:
         self.world = world
@@ -136,7 +138,7 @@ class DrillLoop:
 
     # ------------------------------------------------------------------ the call
     async def __call__(self, rt) -> int:
-        """Run feeding ticks here; how many ran (each as ``Runtime.tick`` would, the world
+        """Run drilling ticks here; how many ran (each as ``Runtime.tick`` would, the world
         stepped after each but the last). Where the compiled ticks stopped before a tick with
         the world already stepped for it, that tick is the control task's, run from here."""
         n_max = self._budget(rt)

@@ -326,7 +326,7 @@ class ProtocolRunner:
             bulk = getattr(self._on_tick, "ticks", None)
             if bulk is not None and proc.world is not None and proc.drive \
                     and self._compiled_ticks:
-                # feeding ticks compiled, many per call (the reader takes them in bulk)
+                # drilling ticks compiled, many per call (the reader takes them in bulk)
                 rt.on_ticks = lambda out, n, k0, state: bulk(self, out, n, k0, state)
                 rt.fused = DrillLoop(proc.world, proc.gate, proc.clock,
                                      every=getattr(self._on_tick, "every", None))
