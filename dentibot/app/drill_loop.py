@@ -106,7 +106,7 @@ class DrillLoop:
                 and dev.motor.world is w and dev.aux.world is w):
             return 0
         clock = self.clock
-        if clock is not rt.clock or clock._pace is not None or clock._halted:
+        if clock is not rt.clock or not clock.ticks_left():
             return 0
         hp = w.handpiece
         if (w.fractured is not None or hasattr(w.motion, "rotation_at") or w.estop
@@ -122,14 +122,10 @@ class DrillLoop:
         servo = ctx.axis_servo
         if params is not None and (servo is None or servo.p is not params):
             return 0
-        n = CHUNK
-        if clock._credits != float("inf"):
-            n = min(n, int(clock._credits))
-        for fut, _until, max_ticks, count, _fn in self.gate._waiters:
-            if fut is not None and fut.done():
-                continue
-            if max_ticks is not None:
-                n = min(n, max_ticks - count)
+        n = int(min(CHUNK, clock.ticks_left()))
+        due = self.gate.ticks_to_next_waiter()
+        if due is not None:
+            n = min(n, due)
         if self.every:
             n = min(n, -rt.ticks % self.every + 1)
         k = max(hp.hs[hpk.S["k"]], w.sensor.ss[ftk.S["k"]])

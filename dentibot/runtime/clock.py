@@ -273,6 +273,13 @@ class LockStepClock(Clock):
                 await self._wake.wait()
         return True
 
+    def ticks_left(self) -> float:
+        """Ticks that may run now without a wait: the granted ticks left (infinite when
+        released), 0 when halted or paced (a paced tick waits for its deadline)."""
+        if self._halted or self._pace is not None:
+            return 0
+        return max(self._credits, 0)
+
     def stepped(self, ticks: int) -> None:
         """``ticks`` granted ticks' steps were taken by their owner (the compiled drilling
         loop steps the world between its ticks itself)."""

@@ -110,6 +110,12 @@ class TickGate:
         self._waiters = keep
         return woke
 
+    def ticks_to_next_waiter(self) -> int | None:
+        """Ticks until the first waiter whose tick count ends (None: none counts ticks)."""
+        left = [w[2] - w[3] for w in self._waiters
+                if w[2] is not None and not (w[0] is not None and w[0].done())]
+        return min(left) if left else None
+
     def skip(self, ticks: int) -> None:
         """``ticks`` ticks passed in which no waiter could be woken (they ran in one compiled
         call that stops where a waiter's count would end): the counts advance."""

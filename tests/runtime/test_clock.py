@@ -94,3 +94,47 @@ async def test_the_timer_serves_other_tasks_while_it_waits():
     t_tick = time.perf_counter()
     await task
     assert seen and seen[0] < t_tick
+
+
+async def test_lockstep_ticks_left_and_steps_taken_by_their_owner():
+    steps: list[int] = []
+    held = LockStepClock(lambda: steps.append(1), 0.002, held=True)
+    assert held.ticks_left() == 0
+    held.grant(5)
+    assert held.ticks_left() == 5
+    held.stepped(3)                       # three steps taken by someone else
+    assert held.ticks_left() == 2 and held.now() == pytest.approx(0.006) and not steps
+    await held.wait_next()                # the clock's own step
+    assert held.ticks_left() == 1 and steps == [1]
+    held.halt()
+    assert held.ticks_left() == 0
+    free = LockStepClock(lambda: None, 0.002)
+    assert free.ticks_left() == float("inf")
+    assert LockStepClock(lambda: None, 0.002, paced=True).ticks_left() == 0
+
+
+def test_lockstep_stats_in_bulk():
+    s = DeadlineStats(0.002, deadlines=False)
+    s.add_lockstep(100, 0.001)
+    d = s.as_dict()
+    assert d["ticks"] == 100 and d["overruns"] == 0
+    assert d["compute_us_mean"] == pytest.approx(10.0) and d["lateness_us_max"] == 0.0
+
+
+async def test_the_gate_says_when_its_next_waiter_is_due_and_counts_ticks_run_elsewhere():
+    from dentibot.runtime.gate import TickGate
+
+    gate = TickGate()
+    gate.open(object())
+    assert gate.ticks_to_next_waiter() is None
+    woken: list[str] = []
+    fut = gate.wait(lambda rt: False, 10)
+    gate.call_after(4, lambda: woken.append("pedal up"))
+    gate.wait(lambda rt: False)               # no tick count: not due by ticks
+    assert gate.ticks_to_next_waiter() == 4
+    gate.skip(3)                              # three ticks ran in one compiled call
+    assert gate.ticks_to_next_waiter() == 1
+    gate.after_tick()                         # the fourth: the pedal is released
+    assert woken == ["pedal up"] and gate.ticks_to_next_waiter() == 6
+    fut.cancel()                              # a cancelled wait is no longer due
+    assert gate.ticks_to_next_waiter() is None
