@@ -14,6 +14,9 @@ Every law is the kernel the control task and the world call themselves
 :mod:`~dentibot.states.feeding_kernels`, :mod:`~dentibot.sim.arm_kernels`,
 :mod:`~dentibot.sim.world_kernels`); what is here is their order, which is the tick's.
 
+Unlike the kernels it calls, :func:`drill_ticks` is compiled at its first call (a few
+seconds once, then loaded from numba's cache): in lock-step time, where no deadline waits.
+
 The first tick in which anything would happen (a finding, an event, a refused command) is
 not run: the controller's state arrays are put back as they were before it, and the control
 task runs that tick itself. :class:`~dentibot.app.drill_loop.DrillLoop` prepares the arrays

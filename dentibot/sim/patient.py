@@ -127,6 +127,10 @@ def _sway(freq: np.ndarray, phase: np.ndarray, base: np.ndarray, amp: float,
             out[j, axis] = amp * s
 
 
+_sway(np.zeros((3, 1)), np.zeros((3, 1)), np.zeros((3, 1)), 0.0, np.zeros(1),
+      np.zeros((1, 3)))       # compiled (or loaded from numba's cache) at import
+
+
 class BenchSquarePath:
     """The thesis bench's platform as it really moved in experiment 1 (fitted, see
     :mod:`dentibot.sim.bench_physics`): a closed loop in the platform's vertical plane, the

@@ -231,6 +231,9 @@ def meter_ticks(st: np.ndarray, rows: np.ndarray, n: int, over_mm: float, c: flo
         st[M_HAS_POS] = 1.0
 
 
+meter_ticks(np.zeros(9), np.zeros((1, 7)), 1, 1.0, 1.0, 1.0)   # compiled at import
+
+
 class _Meter:
     """Called after every tick (``on_tick``, or ``ticks`` for many at once): peaks, stalls,
     time past the working length, and fatigue under the file's own strain-life constants
