@@ -117,7 +117,7 @@ class Behaviour:
         """A turning file above the torque limit outside feeding is a fault."""
         th = rt.cfg.thresholds
         tau = est.file_torque_mnm
-        if fk.overloaded(float(tau), th.torque_limit_mnm, turning_commanded(rt)):
+        if fk.overloaded(float(tau), float(th.torque_limit_mnm), turning_commanded(rt)):
             return [("fault", (f"file torque {tau:.1f} mNm > limit "
                                f"{th.torque_limit_mnm:.1f} mNm in {rt.state}"))]
         return []
@@ -208,9 +208,10 @@ class Drilling(Behaviour):
     def guard(self, ctx, rt, est):
         th, wl = rt.cfg.thresholds, rt.cfg.plan.working_length_mm
         has_depth = est.depth_mm is not None
-        code = fk.drilling_guard(est.force_norm_n, th.patient_moved_n, has_depth,
-                                 est.depth_mm if has_depth else 0.0, wl + th.depth_margin_mm,
-                                 float(est.wrench_h[2]), th.axial_force_limit_n)
+        code = fk.drilling_guard(float(est.force_norm_n), float(th.patient_moved_n), has_depth,
+                                 float(est.depth_mm) if has_depth else 0.0,
+                                 float(wl + th.depth_margin_mm), float(est.wrench_h[2]),
+                                 float(th.axial_force_limit_n))
         if code == fk.GUARD_PATIENT_MOVED:
             ctx.patient_episodes += 1
             return ("patient_moved", f"||f_H|| = {est.force_norm_n:.2f} N > {th.patient_moved_n} N")
@@ -257,8 +258,9 @@ class Feeding(Drilling):
         r = ctx.torque_rise
         code, ahead = fk.feeding_checks(
             fk.REVERSAL_NEEDED if "reversal_needed" in dec.events else 0, float(tau),
-            float(est.motor_rpm), spin_up_rpm(rt.cfg.handpiece), th.torque_limit_mnm, r.st,
-            r._a, r.ts, r.p.min_slope_mnm_s, r.p.horizon_s)
+            float(est.motor_rpm), float(spin_up_rpm(rt.cfg.handpiece)),
+            float(th.torque_limit_mnm), r.st, float(r._a), float(r.ts),
+            float(r.p.min_slope_mnm_s), float(r.p.horizon_s))
         if code == fk.REVERSE_LIMIT:
             ev.append(("reversal_needed", (f"file torque {tau:.1f} mNm > limit "
                                            f"{th.torque_limit_mnm:.1f} mNm")))
@@ -287,9 +289,9 @@ class Reversing(Drilling):
         hp = rt.cfg.handpiece
         start_pos, start_tick = self.start
         turned = start_pos - est.motor_pos_deg
-        code = fk.reversal_over(float(start_pos), float(est.motor_pos_deg), hp.reversal_deg,
-                                float(est.motor_rpm), rt.ticks, start_tick, rt.ts,
-                                hp.reversal_timeout_s)
+        code = fk.reversal_over(float(start_pos), float(est.motor_pos_deg),
+                                float(hp.reversal_deg), float(est.motor_rpm), int(rt.ticks),
+                                int(start_tick), float(rt.ts), float(hp.reversal_timeout_s))
         if code == fk.REVERSAL_DONE:
             return [("reversal_finished", f"turned back {turned:.1f} deg")]
         if code == fk.REVERSAL_TIMEOUT:
@@ -363,8 +365,8 @@ class Retracting(Behaviour):
 
     def events(self, ctx, rt, est):
         has_depth = est.depth_mm is not None
-        if fk.retracted(has_depth, est.depth_mm if has_depth else 0.0,
-                        rt.cfg.plan.retract_to_mm):
+        if fk.retracted(has_depth, float(est.depth_mm) if has_depth else 0.0,
+                        float(rt.cfg.plan.retract_to_mm)):
             ctx.out_point = tuple(est.tip_0)
             if self.unknown_mm is not None:
                 return [("retracted", (

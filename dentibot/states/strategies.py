@@ -108,9 +108,9 @@ class KernelStrategy(DrillingStrategy):
         if self.kind == fk.FEEDRATE and not math.isfinite(tau_mnm):
             raise ValueError(f"file torque is not finite: {tau_mnm}")
         fz, fz_star, bits = fk.strategy_decision(
-            self.kind, self.reverse, self.pd.st, self.pd.par, self.blank,
-            p.feedrate.reversal_threshold_n, p.constant_fz_n, self.wl, float(tau_mnm),
-            float(depth_mm))
+            int(self.kind), bool(self.reverse), self.pd.st, self.pd.par, self.blank,
+            float(p.feedrate.reversal_threshold_n), float(p.constant_fz_n), float(self.wl),
+            float(tau_mnm), float(depth_mm))
         return Decision(fz, fz_star, _EVENTS[bits])
 
 

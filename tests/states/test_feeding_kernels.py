@@ -66,3 +66,20 @@ def test_feeding_checks_limit_then_projected_rise():
     code, ahead = fk.feeding_checks(0, 45.0, 200.0, 270.0, 50.0, np.array([1.0, 39.0, 3000.0]),
                                     *args)
     assert (code, ahead) == (0, 45.0)
+
+
+def test_a_run_compiles_nothing_after_import():
+    """Every kernel the drilling states call keeps the one signature it was compiled for at
+    import: a call with an int where a float was compiled would compile again, inside a
+    tick (in real time, a missed deadline and a lost drive heartbeat)."""
+    from dentibot.control import depth, feedrate, torque_rise
+    from dentibot.experiments import preclinical as pc
+
+    kernels = (fk.drilling_guard, fk.strategy_decision, fk.feeding_checks, fk.overloaded,
+               fk.retracted, fk.reversal_over, feedrate.pd_step, torque_rise.rise_step,
+               depth.depth_along_xyz)
+    assert all(len(k.signatures) == 1 for k in kernels)
+    phantom = pc.phantoms(1)[0]
+    for strategy in ("automated", "none"):
+        pc.run_phantom(pc.PreclinicalSpec(phantom, strategy=strategy, rounds_s=(8.0,)))
+    assert [len(k.signatures) for k in kernels] == [1] * len(kernels)
