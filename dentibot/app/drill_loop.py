@@ -81,7 +81,6 @@ class DrillLoop:
         self.last = np.zeros(dk.LAST_SIZE)
         self.frames = np.zeros((6, 4, 3))
         self.jh = np.zeros((6, 6))
-        self.ticks_run = 0          # ticks run here so far (for the benchmarks and tests)
 
     # ------------------------------------------------------------------ eligibility
     def _budget(self, rt) -> int:
@@ -251,5 +250,4 @@ class DrillLoop:
             w.fracture_from_step(code)
         if rt.on_ticks is not None:
             rt.on_ticks(self.out, n, k0, rt.treatment.state)
-        self.ticks_run += n
 
