@@ -114,6 +114,10 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
     raw = np.empty(6)
     code = 0
     t_w = t0
+    # booleans known only at run time: a literal True or False passed on would compile each
+    # kernel called with it again, for numba's Literal[bool] type
+    yes = n_max > 0
+    no = not yes
     last_frames, last_jh = frames_out.copy(), jh_out.copy()
     for i in range(n_max):
         _keep(saved, state)
@@ -124,7 +128,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
             qr[j] = np.rint(q[j] / enc_res) * enc_res
             raw[j] = ss[i_last0 + j]
         rpm, pos, cur = hs[i_omega], hs[i_pos], hs[i_current]
-        if sk.inputs(fresh, bounds, last_force, k, seq, seq, seq, seq, True, raw, qr, cur, rpm,
+        if sk.inputs(fresh, bounds, last_force, k, seq, seq, seq, seq, yes, raw, qr, cur, rpm,
                      pos, int(ss[i_status]), jump_n, in_out):
             _restore(saved, state)
             if i:
@@ -133,15 +137,15 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
             return i, i, code
         # 2. the estimate
         frames, jh, wrench_h, norm, tau, tipax = sense(qr, raw, cur, rpm, dh, tool, ref_h,
-                                                       True, g_offset, g_gain, to_h,
+                                                       yes, g_offset, g_gain, to_h,
                                                        efficiency, friction_a)
         depth = depth_along_xyz(tipax[3, 0], tipax[3, 1], tipax[3, 2], depth_o[0], depth_o[1],
                                 depth_o[2], depth_a[0], depth_a[1], depth_a[2])
         # the observers, then the estimate's checks
-        bad = sk.spindle(sp_st, sp_lim, lim_ts, False, compared, want_rpm, rpm, enabled,
+        bad = sk.spindle(sp_st, sp_lim, lim_ts, no, compared, want_rpm, rpm, enabled,
                         tau) != 0
         at_speed = forward_rpm > 0.0 and abs(rpm - forward_rpm) < share * forward_rpm
-        bad = bad or sk.fracture(fr_st, fr_ring, fr_lim, n_recent, at_speed, tau, depth, True,
+        bad = bad or sk.fracture(fr_st, fr_ring, fr_lim, n_recent, at_speed, tau, depth, yes,
                                  fr_out)
         if not bad:
             v = sk.tip_speed(tp_st, tp_ring, tipax[3, 0], tipax[3, 1], tipax[3, 2], lim_ts,
@@ -149,7 +153,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
             bad = v >= 0.0 and tp_st[sk.T_BAD] * lim_ts >= persist_s
         if not bad:
             turning = file_turning and abs(rpm) > 5.0
-            bad = sk.estimate_checks(disagree, est_lim, lim_ts, turning, tau, wrench_h[5], True,
+            bad = sk.estimate_checks(disagree, est_lim, lim_ts, turning, tau, wrench_h[5], yes,
                                      depth_o[0], depth_o[1], depth_o[2], depth_a[0],
                                      depth_a[1], depth_a[2], tipax[3, 0], tipax[3, 1],
                                      tipax[3, 2], wl, qr, q_lo_j, q_hi_j, frames, elbow_off,
@@ -158,10 +162,10 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
         # then the reversal's end, or the strategy's decision and feeding's reversal checks
         fz = fz_star = 0.0
         if phase == RETRACTING:
-            bad = bad or retracted(True, depth, retract_to) or overloaded(tau, torque_limit,
-                                                                          True)
+            bad = bad or retracted(yes, depth, retract_to) or overloaded(tau, torque_limit,
+                                                                         yes)
         elif not bad:
-            bad = drilling_guard(norm, moved_n, True, depth, depth_max, wrench_h[2],
+            bad = drilling_guard(norm, moved_n, yes, depth, depth_max, wrench_h[2],
                                  axial_n) != 0
             if not bad and phase == REVERSING:
                 bad = reversal_over(rev_start_deg, pos, rev_deg, rpm, k, rev_start_tick, lim_ts,
@@ -181,7 +185,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
         # 5. the arm's command: the orientation loop, the feed, the admittance law
         ff[:] = ff0
         if has_servo:
-            axis_step(sv_st, sv_par, depth, True, wrench_h, beam_l, beam_step, beam_0, beam_1,
+            axis_step(sv_st, sv_par, depth, yes, wrench_h, beam_l, beam_step, beam_0, beam_1,
                       beam_2)
             if not axis_twist(sv_st, sv_par, ff):
                 ff[:] = ff0
@@ -192,7 +196,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
                                              frames, qr, w_prev, half_ts_deg, q_lo, q_hi,
                                              sigma, elbow_off, wrist_frame, thresholds, lo_rad,
                                              hi_rad, vmax_rad_s, margin_rad, lim_ts)
-        if sk.command_checks(qdot, twist, speed_lim, False, speed_lim, tip_cap, cmd_out) != 0 \
+        if sk.command_checks(qdot, twist, speed_lim, no, speed_lim, tip_cap, cmd_out) != 0 \
                 or ast[i_error] != 0.0 or not command_velocity(ast, lims, vel_cmd, queue_t, queue_v,
                                                          qdot, t_w, dead_time):
             _restore(saved, state)
