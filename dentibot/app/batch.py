@@ -129,18 +129,20 @@ def run_protocol(protocol: Protocol, tap: Callable[[dict, ProtocolRunner], None]
     """
     cancel = _CANCEL.get()
 
+    def check_cancel(r: ProtocolRunner) -> None:
+        if cancel is not None and cancel.is_set():
+            r.abort("cancelled")
+
     def after(r: ProtocolRunner) -> None:
         if on_tick is not None:
             on_tick(r)
-        if cancel is not None and cancel.is_set():
-            r.abort("cancelled")
+        check_cancel(r)
 
     bulk = getattr(on_tick, "ticks", None)
     if bulk is not None:             # it takes compiled drilling ticks in bulk too
         def ticks(r: ProtocolRunner, out, n: int, k0: int, state: str) -> None:
             bulk(r, out, n, k0, state)
-            if cancel is not None and cancel.is_set():
-                r.abort("cancelled")
+            check_cancel(r)
 
         after.ticks, after.every = ticks, getattr(on_tick, "every", None)
 

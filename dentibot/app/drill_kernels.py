@@ -91,7 +91,8 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
     Returns ``(ticks run, world steps taken, fracture code)``. Run to ``n_max``, the world is
     stepped after every tick but the last (the control task's clock steps it after its work
     between ticks). Stopped before a tick, or by a fracture in a step, the world has been
-    stepped after the last tick run too: the next tick is due at once."""
+    stepped after the last tick run too: the next tick is due at once. ``frames_out`` and
+    ``jh_out`` get the last tick's chain."""
     (ws, wp, F, dh_w, ast, ap, lims, q, qd, vel_cmd, target, queue_t, queue_v, cst, cp, R, h,
      s_arr, kappa, b0, b1, b2, cout, hs, hpp, hnoise, ss, sp, snoise) = world
     (enc_res, i_origin, i_tip, i_omega, i_pos, i_current, i_torque, i_stalled, i_last0,
@@ -118,7 +119,8 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
     # kernel called with it again, for numba's Literal[bool] type
     yes = n_max > 0
     no = not yes
-    last_frames, last_jh = frames_out.copy(), jh_out.copy()
+    last_frames, last_jh = frames_out, jh_out
+    ran, stepped = n_max, max(n_max - 1, 0)
     for i in range(n_max):
         _keep(saved, state)
         k = k0 + i
@@ -131,10 +133,8 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
         if sk.inputs(fresh, bounds, last_force, k, seq, seq, seq, seq, yes, raw, qr, cur, rpm,
                      pos, int(ss[i_status]), jump_n, in_out):
             _restore(saved, state)
-            if i:
-                frames_out[:] = last_frames
-                jh_out[:] = last_jh
-            return i, i, code
+            ran = stepped = i
+            break
         # 2. the estimate
         frames, jh, wrench_h, norm, tau, tipax = sense(qr, raw, cur, rpm, dh, tool, ref_h,
                                                        yes, g_offset, g_gain, to_h,
@@ -178,10 +178,8 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
                 bad = events != 0 or why != 0
         if bad:
             _restore(saved, state)
-            if i:
-                frames_out[:] = last_frames
-                jh_out[:] = last_jh
-            return i, i, code
+            ran = stepped = i
+            break
         # 5. the arm's command: the orientation loop, the feed, the admittance law
         ff[:] = ff0
         if has_servo:
@@ -200,10 +198,8 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
                 or ast[i_error] != 0.0 or not command_velocity(ast, lims, vel_cmd, queue_t, queue_v,
                                                          qdot, t_w, dead_time):
             _restore(saved, state)
-            if i:
-                frames_out[:] = last_frames
-                jh_out[:] = last_jh
-            return i, i, code
+            ran = stepped = i
+            break
         # 6. what a study reads after the tick, and the last tick's figures
         o = origins[i]
         out[i, 0] = abs(hs[i_torque])
@@ -227,9 +223,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
         last[s0 + 4], last[s0 + 5], last[s0 + 6], last[s0 + 7] = pos, depth, fz, fz_star
         last_frames, last_jh = frames, jh
         if i == n_max - 1:
-            frames_out[:] = last_frames
-            jh_out[:] = last_jh
-            return n_max, n_max - 1, code
+            break
         # the world's next step (the clock's, between two ticks)
         t_w = (seq + 1) * ts
         for j in range(3):
@@ -238,7 +232,9 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
                           queue_v, cst, cp, R, h, s_arr, kappa, b0, b1, b2, cout, hs, hpp,
                           hnoise, ss, sp, snoise, t_w, ts)
         if code != 0:
-            frames_out[:] = last_frames
-            jh_out[:] = last_jh
-            return i + 1, i + 1, code
-    return n_max, n_max - 1, code
+            ran = stepped = i + 1
+            break
+    if ran:
+        frames_out[:] = last_frames
+        jh_out[:] = last_jh
+    return ran, stepped, code

@@ -151,9 +151,9 @@ class ProtocolRunner:
     recording, not the live summary (the summary then carries the status and its reason).
     ``on_tick(runner)`` is called at the end of every tick; when nothing else needs the rows
     (no recording, live view, live summary, tap or progress) none is built, and an ``on_tick``
-    with a ``ticks`` method that takes ticks in bulk lets the simulator's feeding and
-    retracting ticks run compiled, many per call (:mod:`dentibot.app.drill_loop`; the same
-    outcome; ``compiled_ticks=False``: tick by tick).
+    with a ``ticks`` method that takes ticks in bulk lets the simulator's feeding, reversing
+    and retracting ticks run compiled, many per call (:mod:`dentibot.app.drill_loop`; the
+    same outcome; ``compiled_ticks=False``: tick by tick).
     ``limit_share``: the largest share of the file's strength the protocol's hard torque limit
     may be (90 %; a study of strategies without the runtime's net on the built-in simulator may
     go up to 1). ``live``: a port on 127.0.0.1 where the run's channels are served live over the

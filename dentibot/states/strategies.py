@@ -87,9 +87,6 @@ class DrillingStrategy:
     def step(self, tau_mnm: float, depth_mm: float) -> Decision:
         raise NotImplementedError
 
-    def _at_wl(self, depth_mm: float) -> tuple[str, ...]:
-        return ("working_length_reached",) if depth_mm >= self.wl else ()
-
 
 class KernelStrategy(DrillingStrategy):
     """A strategy decided by the compiled :func:`~dentibot.states.feeding_kernels.strategy_decision`

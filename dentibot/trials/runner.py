@@ -302,9 +302,9 @@ def _limit_share(proc: Procedure) -> float:
 
 
 def run_procedure(proc: Procedure, compiled_ticks: bool = True) -> dict:
-    """Run one procedure (blocking, lock-step time): its row of :data:`SCHEMA`. Its feeding
-    and retracting ticks run compiled, many per call (``compiled_ticks=False``: tick by tick
-    through the control task; the same row, wall time aside)."""
+    """Run one procedure (blocking, lock-step time): its row of :data:`SCHEMA`. Its feeding,
+    reversing and retracting ticks run compiled, many per call (``compiled_ticks=False``: tick
+    by tick through the control task; the same row, wall time aside)."""
     s, arm = proc.subject, proc.arm
     meter = _Meter(s)
     wall = time.perf_counter()
