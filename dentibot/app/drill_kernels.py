@@ -33,9 +33,11 @@ from dentibot.control.canal_axis_kernels import feed_scale
 from dentibot.control.canal_axis_kernels import step as axis_step
 from dentibot.control.canal_axis_kernels import twist as axis_twist
 from dentibot.control.depth import depth_along_xyz
+from dentibot.control.kinematics_kernels import tool_euler_deg
 from dentibot.control.tick_kernels import sense
 from dentibot.runtime import supervisor_kernels as sk
 from dentibot.sim.arm_kernels import command_velocity
+from dentibot.sim.canal_kernels import red_area
 from dentibot.sim.world_kernels import step as world_step
 from dentibot.states.feeding_kernels import (
     drilling_guard,
@@ -45,6 +47,7 @@ from dentibot.states.feeding_kernels import (
     reversal_over,
     strategy_decision,
 )
+from dentibot.telemetry.blocks import COL
 
 #: The states run here (``phase``).
 FEEDING, RETRACTING, REVERSING = 0, 1, 2
@@ -61,6 +64,13 @@ LAST_Q, LAST_RAW, LAST_WH, LAST_QDOT, LAST_TIP, LAST_AXIS, LAST_SCALAR = 0, 6, 1
 LAST_SCALARS = ("force_norm_n", "file_torque_mnm", "motor_rpm", "motor_current_a",
                 "motor_pos_deg", "depth_mm", "fz_n", "fz_star_n")
 LAST_SIZE = LAST_SCALAR + len(LAST_SCALARS)
+#: Where each tick's telemetry numbers go in ``rows[i]`` (:data:`dentibot.telemetry.blocks.COL`)
+R_Q, R_QDOT, R_TOOL, R_PHANTOM = COL["q_deg"], COL["qdot_cmd_deg_s"], COL["tool_pose"], \
+    COL["phantom_xyz"]
+R_WS, R_WH, R_FZ, R_FZ_STAR = COL["wrench_s"], COL["wrench_h"], COL["fz_n"], COL["fz_star_n"]
+R_TAU, R_CUR, R_RPM, R_DEPTH = COL["file_torque_mnm"], COL["motor_current_a"], \
+    COL["motor_rpm"], COL["depth_mm"]
+R_TRUE_DEPTH, R_COMPLETENESS = COL["true_depth_mm"], COL["completeness"]
 
 
 @njit(cache=True)
@@ -80,7 +90,8 @@ def _restore(saved, arrays):
 
 @njit(cache=True)
 def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world, reads,
-                sup, ctl, adm, feed, servo, arm_cmd, out, last, frames_out, jh_out):
+                sup, ctl, adm, feed, servo, arm_cmd, truth, out, rows, last, frames_out,
+                jh_out):
     """Run up to ``n_max`` ticks of feeding from control tick ``k0``, the world at step
     ``steps0`` (time ``t0``). ``origins[i]``: the canal orifice in {0} at world step
     ``steps0 + i`` (the patient's motion); ``axis_p``: the canal's axis in {0}. ``state``: the
@@ -92,7 +103,14 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
     stepped after every tick but the last (the control task's clock steps it after its work
     between ticks). Stopped before a tick, or by a fracture in a step, the world has been
     stepped after the last tick run too: the next tick is due at once. ``frames_out`` and
-    ``jh_out`` get the last tick's chain."""
+    ``jh_out`` get the last tick's chain.
+
+    ``truth``: whether to write each tick's telemetry numbers into ``rows[i]`` (the columns of
+    :data:`~dentibot.telemetry.blocks.COLUMNS` but the compute time), the tool's 6R_H, and
+    what the canal's completeness (eq 6.1) takes: its initial lumen, stained widths, stain
+    depth, a work buffer, the initial red area, the index of its lumen's version in the
+    canal's state, and the completeness at the first tick. It is computed again only when the
+    lumen changed, as :meth:`~dentibot.sim.world.World.completeness` is."""
     (ws, wp, F, dh_w, ast, ap, lims, q, qd, vel_cmd, target, queue_t, queue_v, cst, cp, R, h,
      s_arr, kappa, b0, b1, b2, cout, hs, hpp, hnoise, ss, sp, snoise) = world
     (enc_res, i_origin, i_tip, i_omega, i_pos, i_current, i_torque, i_stalled, i_last0,
@@ -109,6 +127,8 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
      spin_up, torque_limit, rise_st, rise_a, rise_ts, min_slope, horizon) = feed
     (has_servo, has_scale, sv_st, sv_par, beam_l, beam_step, beam_0, beam_1, beam_2) = servo
     (dead_time, i_error) = arm_cmd
+    (row_on, r_6_h, R0, width0, stain_mm, red_buf, red0, i_version, completeness) = truth
+    version = cst[i_version]
     ff0 = np.zeros(6)
     ff = np.empty(6)
     qr = np.empty(6)
@@ -200,11 +220,12 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
             _restore(saved, state)
             ran = stepped = i
             break
-        # 6. what a study reads after the tick, and the last tick's figures
+        # 6. what a study reads after the tick, the telemetry row, the last tick's figures
         o = origins[i]
+        true_depth = depth_along_xyz(ws[i_tip], ws[i_tip + 1], ws[i_tip + 2], o[0], o[1], o[2],
+                                     axis_p[0], axis_p[1], axis_p[2])
         out[i, 0] = abs(hs[i_torque])
-        out[i, 1] = depth_along_xyz(ws[i_tip], ws[i_tip + 1], ws[i_tip + 2], o[0], o[1], o[2],
-                                    axis_p[0], axis_p[1], axis_p[2])
+        out[i, 1] = true_depth
         out[i, 2] = hs[i_stalled]
         out[i, 3] = pos
         out[i, 4] = cout[i_strain]
@@ -218,6 +239,21 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
         for j in range(3):
             last[LAST_TIP + j] = tipax[3, j]
             last[LAST_AXIS + j] = tipax[2, j]
+        if row_on:
+            r = rows[i]
+            for j in range(6):
+                r[R_Q + j] = qr[j]
+                r[R_QDOT + j] = qdot[j]
+                r[R_WS + j] = raw[j]
+                r[R_WH + j] = wrench_h[j]
+            for j in range(3):
+                r[R_TOOL + j] = tipax[3, j]
+                r[R_PHANTOM + j] = o[j]
+            r[R_TOOL + 3], r[R_TOOL + 4], r[R_TOOL + 5] = tool_euler_deg(frames, r_6_h)
+            r[R_FZ] = feed
+            r[R_FZ_STAR] = fz_star if phase == FEEDING else feed
+            r[R_TAU], r[R_CUR], r[R_RPM], r[R_DEPTH] = tau, cur, rpm, depth
+            r[R_TRUE_DEPTH], r[R_COMPLETENESS] = true_depth, completeness
         s0 = LAST_SCALAR
         last[s0], last[s0 + 1], last[s0 + 2], last[s0 + 3] = norm, tau, rpm, cur
         last[s0 + 4], last[s0 + 5], last[s0 + 6], last[s0 + 7] = pos, depth, fz, fz_star
@@ -234,6 +270,9 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
         if code != 0:
             ran = stepped = i + 1
             break
+        if row_on and cst[i_version] != version:
+            version = cst[i_version]
+            completeness = (red0 - red_area(R, R0, width0, stain_mm, red_buf)) / red0
     if ran:
         frames_out[:] = last_frames
         jh_out[:] = last_jh

@@ -38,11 +38,12 @@ import time
 import numpy as np
 
 from dentibot.app import drill_kernels as dk
-from dentibot.control.kinematics import WRIST_CENTRE_FRAME
+from dentibot.control.kinematics import WRIST_CENTRE_FRAME, euler_xyz_deg
 from dentibot.control.torque_rise import TorqueRise
 from dentibot.runtime.clock import LockStepClock
 from dentibot.runtime.estimate import Estimate
 from dentibot.sim import arm as sim_arm
+from dentibot.sim import canal_kernels as ck
 from dentibot.sim import ftsensor_kernels as ftk
 from dentibot.sim import handpiece_kernels as hpk
 from dentibot.sim import world_kernels as wk
@@ -51,6 +52,7 @@ from dentibot.sim.ftsensor import NOISE_BLOCK as FT_NOISE_BLOCK
 from dentibot.sim.handpiece import NOISE_BLOCK as HP_NOISE_BLOCK
 from dentibot.states.behaviours import spin_up_rpm
 from dentibot.states.strategies import Decision, KernelStrategy, StrategyParams, make_strategy
+from dentibot.telemetry.blocks import COL, WIDTH, TickBlock
 
 #: Most ticks in one call: the event loop is served between calls (about 3 ms).
 CHUNK = 256
@@ -70,14 +72,19 @@ class DrillLoop:
     """A procedure's drilling ticks over ``world``, many per compiled call (module
     docstring); ``gate`` and ``clock`` are the procedure's."""
 
-    def __init__(self, world, gate, clock: LockStepClock, every: int | None = None) -> None:
+    def __init__(self, world, gate, clock: LockStepClock, every: int | None = None,
+                 block_ticks: int = CHUNK) -> None:
         self.world = world
         self.gate = gate
         self.clock = clock
         #: a call ends at the first tick that is a multiple of ``every``, if any (the reader
         #: then looks at the world at that tick)
         self.every = every
+        #: most ticks per call when the rows are read (a recorder's budget of ticks at risk)
+        self.block_ticks = max(2, min(CHUNK, int(block_ticks)))
         self.out = np.zeros((CHUNK, len(dk.OUT_FIELDS)))
+        self.rows = np.zeros((CHUNK, WIDTH))
+        self._phantom_euler = euler_xyz_deg(world.phantom_pose[:3, :3])
         self.last = np.zeros(dk.LAST_SIZE)
         self.frames = np.zeros((6, 4, 3))
         self.jh = np.zeros((6, 6))
@@ -87,7 +94,8 @@ class DrillLoop:
         """How many ticks may run here now (0: none)."""
         w, tr, ctx, dev = self.world, rt.treatment, rt.ctx, rt.dev
         state = tr.state
-        if (rt.sink is not None or (rt.on_tick is not None and rt.on_ticks is None)
+        if ((rt.sink is not None and rt.on_block is None)
+                or (rt.on_tick is not None and rt.on_ticks is None)
                 or rt.pending or state not in STATES or rt._state != state
                 or rt.mode.arm != "admittance" or rt.gravity is None or ctx.depth_ref is None
                 or ctx.tooth is not None or rt.admittance.ref_h.any() or self.gate.pending):
@@ -127,6 +135,8 @@ class DrillLoop:
             n = min(n, due)
         if self.every:
             n = min(n, -rt.ticks % self.every + 1)
+        if rt.sink is not None:
+            n = min(n, self.block_ticks)
         k = max(hp.hs[hpk.S["k"]], w.sensor.ss[ftk.S["k"]])
         n = min(n, int(min(HP_NOISE_BLOCK, FT_NOISE_BLOCK) - k))
         return n if n >= 2 else 0
@@ -205,12 +215,16 @@ class DrillLoop:
                 strat.wl, spin_up_rpm(hpc), th.torque_limit_mnm, rise.st, rise._a, rise.ts,
                 rise.p.min_slope_mnm_s, rise.p.horizon_s)
         servos = (stepping, servo is not None, sv_st, sv_par, *beam)
+        row_on = rt.sink is not None
+        truth = (row_on, rt.R_6_H, canal.R0, canal.width0, float(canal.p.stain_mm),
+                 canal._red_buf, float(canal.red0), ck.S["version"],
+                 float(w.completeness()) if row_on else 0.0)
         k0 = rt.ticks
         n, steps, code = dk.drill_ticks(n_max, k0, steps0, w.t, ts, origins, axis_p,
                                         tuple(state), saved, world_arrays, reads, sups, ctl,
                                         adms, feed, servos,
-                                        (arm._p.vel_dead_time_s, sim_arm._ERROR), self.out,
-                                        self.last, self.frames, self.jh)
+                                        (arm._p.vel_dead_time_s, sim_arm._ERROR), truth,
+                                        self.out, self.rows, self.last, self.frames, self.jh)
         if not n:
             return 0
         self._after(rt, n, steps, code, k0, steps0, time.perf_counter() - t_start)
@@ -250,4 +264,12 @@ class DrillLoop:
             w.fracture_from_step(code)
         if rt.on_ticks is not None:
             rt.on_ticks(self.out, n, k0, rt.treatment.state)
+        if rt.sink is not None:
+            cols = self.rows[:n].copy()
+            cols[:, COL["compute_us"]] = wall_s / n * 1e6    # the call's, shared out
+            block = TickBlock(cols, k0, rt.ts, rt.step_name, rt.treatment.state,
+                              rt.cfg.plan.working_length_mm, rt.ctx.reversals,
+                              self._phantom_euler)
+            rt.on_block(block)
+            rt.last_row = block.row(-1)
 

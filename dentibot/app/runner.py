@@ -20,15 +20,15 @@ import numpy as np
 import structlog
 
 from dentibot.app.device_bounds import stale_bound_conflict
-from dentibot.app.drill_loop import DrillLoop
+from dentibot.app.drill_loop import CHUNK, DrillLoop
 from dentibot.app.procedure import Procedure
 from dentibot.app.steps import Aborted, StepExecutor
 from dentibot.app.tracking import sim_tracking, tracked_config
+from dentibot.control.filebeam import FileBeam
 from dentibot.errors import ConfigError
 from dentibot.io.devices import DevicesConfig, open_devices
 from dentibot.protocol.loader import ProtocolFileError
 from dentibot.protocol.schema import LIMIT_SHARE_OF_STRENGTH, Protocol
-from dentibot.control.filebeam import FileBeam
 from dentibot.runtime.config import RuntimeConfig, Thresholds, ToolGeometry, TreatmentPlan
 from dentibot.runtime.control_task import Runtime
 from dentibot.runtime.tool import tool_matrix
@@ -38,6 +38,7 @@ from dentibot.sim.canal import CanalParams, material_params
 from dentibot.sim.ftsensor import FTSensorParams
 from dentibot.sim.nitifile import NiTiFile
 from dentibot.sim.world import WorldConfig
+from dentibot.telemetry.blocks import TickBlock
 from dentibot.telemetry.foxglove import FoxgloveView
 from dentibot.telemetry.live import LiveView
 from dentibot.telemetry.recorder_process import open_recorder, prestart_recorder_process
@@ -153,7 +154,10 @@ class ProtocolRunner:
     (no recording, live view, live summary, tap or progress) none is built, and an ``on_tick``
     with a ``ticks`` method that takes ticks in bulk lets the simulator's feeding, reversing
     and retracting ticks run compiled, many per call (:mod:`dentibot.app.drill_loop`; the
-    same outcome; ``compiled_ticks=False``: tick by tick).
+    same outcome; ``compiled_ticks=False``: tick by tick). Without ``on_tick`` or ``tap`` (a
+    caller's hook may read the world as each tick ends) they run compiled too, their rows
+    handed to the summary, the recorder, the live view and the progress in blocks
+    (:class:`~dentibot.telemetry.blocks.TickBlock`): the same rows, the same recording.
     ``limit_share``: the largest share of the file's strength the protocol's hard torque limit
     may be (90 %; a study of strategies without the runtime's net on the built-in simulator may
     go up to 1). ``live``: a port on 127.0.0.1 where the run's channels are served live over the
@@ -235,14 +239,35 @@ class ProtocolRunner:
         if self._tap is not None:
             self._tap(row)
         if self.progress is not None and row["tick"] % self.progress_every == 0:
-            self.progress({
-                "step": row["step"], "state": row["state"], "t": row["t"],
-                "depth_mm": row["depth_mm"], "working_length_mm": row["working_length_mm"],
-                "file_torque_mnm": row["file_torque_mnm"],
-                "torque_limit_mnm": self.rt.cfg.thresholds.torque_limit_mnm,
-                "force_n": float(np.linalg.norm(row["wrench_h"][:3])),
-                "completeness": row.get("completeness"),
-            })
+            self._progress(row)
+
+    def _block(self, block: TickBlock) -> None:
+        """A block of rows (the simulator's compiled drilling ticks): the same as
+        :meth:`_row` of each, the summary and the recorder taking the block whole."""
+        if self._live_summary:
+            self.acc.add_block(block)
+        if self.recorder is not None:
+            self.recorder.record_block(block)
+        if self.live is not None or self._tap is not None:
+            for row in block.rows():
+                if self.live is not None:
+                    self.live.record(row)
+                if self._tap is not None:
+                    self._tap(row)
+        if self.progress is not None:
+            every, k0 = self.progress_every, block.k0
+            for k in range(k0 + -k0 % every, k0 + len(block), every):
+                self._progress(block.row(k - k0))
+
+    def _progress(self, row: dict) -> None:
+        self.progress({
+            "step": row["step"], "state": row["state"], "t": row["t"],
+            "depth_mm": row["depth_mm"], "working_length_mm": row["working_length_mm"],
+            "file_torque_mnm": row["file_torque_mnm"],
+            "torque_limit_mnm": self.rt.cfg.thresholds.torque_limit_mnm,
+            "force_n": float(np.linalg.norm(row["wrench_h"][:3])),
+            "completeness": row.get("completeness"),
+        })
 
     def _event(self, tick: int, kind: str, detail: str) -> None:
         t = tick * self.rt.ts
@@ -321,15 +346,21 @@ class ProtocolRunner:
             self.live = LiveView(meta, port=self._live_port, view=view)
         if self._on_tick is not None:
             rt.on_tick = lambda _rt: self._on_tick(self)
+        compiled = proc.world is not None and proc.drive and self._compiled_ticks
         if not (self._live_summary or self.recorder or self.live or self._tap or self.progress):
             rt.sink = None                      # nobody reads rows: none is built
             bulk = getattr(self._on_tick, "ticks", None)
-            if bulk is not None and proc.world is not None and proc.drive \
-                    and self._compiled_ticks:
+            if bulk is not None and compiled:
                 # drilling ticks compiled, many per call (the reader takes them in bulk)
                 rt.on_ticks = lambda out, n, k0, state: bulk(self, out, n, k0, state)
                 rt.fused = DrillLoop(proc.world, proc.gate, proc.clock,
                                      every=getattr(self._on_tick, "every", None))
+        elif self._on_tick is None and self._tap is None and compiled:
+            # drilling ticks compiled, their rows handed over in blocks; a recorder's block
+            # is half its budget of ticks at risk, as its writer flushes
+            rt.on_block = self._block
+            rt.fused = DrillLoop(proc.world, proc.gate, proc.clock, block_ticks=(
+                self.recorder.budget // 2 if self.recorder is not None else CHUNK))
         steps = StepExecutor(proc, aborted=lambda: bool(self._abort_reason))
         try:
             for i, step in enumerate(p.steps):

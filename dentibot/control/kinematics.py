@@ -31,6 +31,7 @@ from dentibot.control.kinematics_kernels import (
     singularity_factors,
     tool_point_axes,
 )
+from dentibot.control.kinematics_kernels import euler_xyz_deg as _euler_xyz_deg
 from dentibot.errors import KinematicsError
 
 # Table 3.1: (alpha_{i-1} deg, a_{i-1} mm, theta offset deg, d_i mm), modified DH.
@@ -284,17 +285,8 @@ def pose_from_matrix(t) -> np.ndarray:
 
 
 def euler_xyz_deg(R) -> tuple[float, float, float]:
-    """Mobile XYZ Euler angles (deg) of a rotation matrix, the same as :func:`pose_from_matrix`
-    (scipy) gives, in closed form for one matrix: ``R = Rx(a) Ry(b) Rz(g)`` has
-    ``R[0][2] = sin b``, ``R[1][2] = -sin a cos b``, ``R[2][2] = cos a cos b``,
-    ``R[0][1] = -cos b sin g``, ``R[0][0] = cos b cos g``. At ``cos b = 0`` g is 0 and
-    ``a = atan2(R[2][1], R[1][1])``. For the 500 Hz telemetry, where scipy's per-call cost
-    (about 50 us) would be most of the tick."""
-    sb = max(-1.0, min(1.0, R[0][2]))
-    b = math.asin(sb)
-    if math.hypot(R[0][0], R[0][1]) > 1e-9:
-        a = math.atan2(-R[1][2], R[2][2])
-        g = math.atan2(-R[0][1], R[0][0])
-    else:
-        a, g = math.atan2(R[2][1], R[1][1]), 0.0
-    return math.degrees(a), math.degrees(b), math.degrees(g)
+    """Mobile XYZ Euler angles (deg) of a rotation matrix (3x3, nested lists or an array), the
+    same as :func:`pose_from_matrix` (scipy) gives, in closed form
+    (:func:`~dentibot.control.kinematics_kernels.euler_xyz_deg`): for the 500 Hz telemetry,
+    where scipy's per-call cost (about 50 us) would be most of the tick."""
+    return _euler_xyz_deg(np.asarray(R, dtype=np.float64))

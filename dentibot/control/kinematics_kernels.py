@@ -140,6 +140,35 @@ def singularity_factors(frames: np.ndarray, q_deg: np.ndarray, qdot_rad_s: np.nd
     return rho, elbow, wrist, rho_rate, elbow_rate, wrist_rate
 
 
+@njit(cache=True)
+def euler_xyz_deg(R: np.ndarray) -> tuple[float, float, float]:
+    """Mobile XYZ Euler angles (deg) of the rotation matrix ``R`` (3x3), as scipy's
+    ``as_euler("XYZ")`` gives them, in closed form: ``R = Rx(a) Ry(b) Rz(g)`` has
+    ``R[0, 2] = sin b``, ``R[1, 2] = -sin a cos b``, ``R[2, 2] = cos a cos b``,
+    ``R[0, 1] = -cos b sin g``, ``R[0, 0] = cos b cos g``. At ``cos b = 0`` g is 0 and
+    ``a = atan2(R[2, 1], R[1, 1])`` (the Meca500's own convention at beta = +-90 deg)."""
+    sb = max(-1.0, min(1.0, R[0, 2]))
+    b = math.asin(sb)
+    if math.hypot(R[0, 0], R[0, 1]) > 1e-9:
+        a = math.atan2(-R[1, 2], R[2, 2])
+        g = math.atan2(-R[0, 1], R[0, 0])
+    else:
+        a, g = math.atan2(R[2, 1], R[1, 1]), 0.0
+    return math.degrees(a), math.degrees(b), math.degrees(g)
+
+
+@njit(cache=True)
+def tool_euler_deg(frames: np.ndarray, r_6_h: np.ndarray) -> tuple[float, float, float]:
+    """The tool frame's mobile XYZ Euler angles (deg) in {0}: of ``0R_6 6R_H``, ``0R_6`` the
+    last frame of the chain ``frames`` (the telemetry's ``tool_pose``)."""
+    r = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            r[i, j] = (frames[5, 0, i] * r_6_h[0, j] + frames[5, 1, i] * r_6_h[1, j]
+                       + frames[5, 2, i] * r_6_h[2, j])
+    return euler_xyz_deg(r)
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel of this module for the argument types
     the controller and the simulator pass: a control loop must not pay a compilation at its
@@ -152,6 +181,8 @@ def warm_up() -> None:
     point_jacobian(frames, pa[3], pa[:3], True)
     point_jacobian(frames, frames[5, 3], np.eye(3), False)
     singularity_factors(frames, q, q, True, 0.0, 4)
+    tool_euler_deg(frames, np.eye(3))
+    euler_xyz_deg(np.eye(3))
 
 
 warm_up()      # at import: before any device streams or loop runs

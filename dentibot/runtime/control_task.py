@@ -57,7 +57,7 @@ class Runtime:
         self.cfg = config
         self.clock = clock
         self.ts = config.period_s
-        self.R_6_H = np.reshape(config.tool.R_6_H, (3, 3))
+        self.R_6_H = np.reshape(np.asarray(config.tool.R_6_H, dtype=np.float64), (3, 3))
         self.kin = Meca500(tool=tool_matrix(self.R_6_H, config.tool.tip_6_mm))
         self.admittance = AdmittanceController(self.kin, SELF_ALIGNMENT, self.ts)
         self.speed_limits = [float(x) for x in self.kin.joint_speed_limits_deg_s]
@@ -80,9 +80,10 @@ class Runtime:
         #: ``event_sink(tick, kind, detail)`` gets every event, command and fault as it happens.
         self.event_sink = event_sink
         self.on_tick: Callable[[Runtime], None] | None = None
-        #: whole ticks run before a tick (:mod:`dentibot.app.drill_loop`), their figures' reader
+        #: whole ticks run before a tick (:mod:`dentibot.app.drill_loop`), their figures'
+        #: reader, and their rows' reader (blocks of rows, ``TickBlock``, instead of ``sink``)
         self.fused: Callable[[Runtime], Awaitable[int]] | None = None
-        self.on_ticks: Callable | None = None
+        self.on_ticks = self.on_block = None
         self.ticks = 0
         self.events_log: list[tuple[int, str, str]] = []   # (tick, kind, detail)
         self.last: Estimate | None = None

@@ -47,6 +47,8 @@ import math
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
+import orjson
+
 from dentibot.errors import ConfigError
 
 __all__ = [
@@ -340,6 +342,24 @@ def stamp(ns: int) -> dict[str, int]:
     return {"sec": sec, "nsec": nsec}
 
 
+#: one ``foxglove.FrameTransform`` in JSON: stamp, parent and child (quoted), translation (m)
+#: and rotation, to 1e-9
+_TF_JSON = ('{"timestamp":{"sec":%d,"nsec":%d},"parent_frame_id":%s,"child_frame_id":%s,'
+            '"translation":{"x":%.9f,"y":%.9f,"z":%.9f},'
+            '"rotation":{"x":%.9f,"y":%.9f,"z":%.9f,"w":%.9f}}')
+_QUOTED: dict[str, str] = {}
+
+
+def _quoted(name: str) -> str:
+    """``name`` as a JSON string (frame names are few: kept once quoted)."""
+    text = _QUOTED.get(name)
+    if text is None:
+        text = orjson.dumps(name).decode()
+        if len(_QUOTED) < 256:
+            _QUOTED[name] = text
+    return text
+
+
 def _v(p: Vec) -> dict[str, float]:
     return {"x": p[0], "y": p[1], "z": p[2]}
 
@@ -466,23 +486,42 @@ class FoxgloveView:
     # -- /tf ------------------------------------------------------------------------------
 
     def transforms(self, row: dict[str, Any], log_ns: int) -> dict[str, Any] | None:
-        """The ``foxglove.FrameTransforms`` message of ``row`` at ``log_ns``, or None when
-        the row places no frame (no valid tool pose, no phantom pose, no extra frames)."""
-        ts = stamp(log_ns)
-        out: dict[str, dict[str, Any]] = {}           # child frame -> transform
+        """The ``foxglove.FrameTransforms`` message of ``row`` at ``log_ns`` (what
+        :meth:`transforms_json` writes, read back), or None when the row places no frame."""
+        data = self.transforms_json(row, log_ns)
+        return None if data is None else orjson.loads(data)
+
+    def transforms_json(self, row: dict[str, Any], log_ns: int) -> bytes | None:
+        """The ``foxglove.FrameTransforms`` message of ``row`` at ``log_ns`` as JSON, or None
+        when the row places no frame (no valid tool pose, no phantom pose, no extra frames).
+        Positions and quaternion components are written to 1 nm and 1e-9 (far below what the
+        arm or the row can tell): full-precision noise digits do not compress, and the
+        rounding halves what ``/tf`` adds to the file."""
+        frames = self._frames(row)
+        if not frames:
+            return None
+        sec, nsec = divmod(int(log_ns), 1_000_000_000)
+        return ('{"transforms":[' + ",".join(
+            _TF_JSON % (sec, nsec, _quoted(parent), _quoted(child), p[0] * _MM, p[1] * _MM,
+                        p[2] * _MM, q[0], q[1], q[2], q[3])
+            for parent, child, p, q in frames) + "]}").encode()
+
+    def _frames(self, row: dict[str, Any]) -> list[tuple[str, str, Sequence[float], Quat]]:
+        """The frames ``row`` places: (parent, child, position in mm, rotation)."""
+        out: dict[str, tuple[str, str, Sequence[float], Quat]] = {}      # by child frame
         tip = _pose6(row.get("tool_pose"))
         if tip is not None:
             q_0h = quat_from_euler_xyz_deg(tip[3], tip[4], tip[5])
             p_0h = tip[:3]
             if self._tool is None:
-                out[FILE_TIP] = self._tf(ts, BASE, FILE_TIP, p_0h, q_0h)
+                out[FILE_TIP] = (BASE, FILE_TIP, p_0h, q_0h)
             else:
                 q_6h, p_6h = self._tool               # 0T_6 = 0T_H (6T_H)^-1
                 q_06 = _qmul(q_0h, _qconj(q_6h))
                 r = _qrotate(q_06, p_6h)
                 p_06 = (p_0h[0] - r[0], p_0h[1] - r[1], p_0h[2] - r[2])
-                out[FLANGE] = self._tf(ts, BASE, FLANGE, p_06, q_06)
-                out[FILE_TIP] = self._tf(ts, FLANGE, FILE_TIP, p_6h, q_6h)
+                out[FLANGE] = (BASE, FLANGE, p_06, q_06)
+                out[FILE_TIP] = (FLANGE, FILE_TIP, p_6h, q_6h)
         tooth = _pose6(row.get("phantom_pose"))
         if tooth is not None:
             cached = self._tooth_q                # the phantom rarely moves: reuse its rotation
@@ -491,28 +530,16 @@ class FoxgloveView:
             else:
                 q_tooth = quat_from_euler_xyz_deg(tooth[3], tooth[4], tooth[5])
                 self._tooth_q = (list(tooth[3:]), q_tooth)     # one atomic store
-            out[TOOTH] = self._tf(ts, BASE, TOOTH, tooth[:3], q_tooth)
+            out[TOOTH] = (BASE, TOOTH, tooth[:3], q_tooth)
         tracked = _pose6(row.get("tooth_pose"))
         if tracked is not None:
-            out[TRACKED_TOOTH] = self._tf(ts, BASE, TRACKED_TOOTH, tracked[:3],
-                                          quat_from_euler_xyz_deg(*tracked[3:]))
+            out[TRACKED_TOOTH] = (BASE, TRACKED_TOOTH, tracked[:3],
+                                  quat_from_euler_xyz_deg(*tracked[3:]))
         if self.frames is not None:
             for parent, child, m in self.frames(row):
                 q, p = self._transform(m, "frames")
-                out[str(child)] = self._tf(ts, str(parent), str(child), p, q)
-        return {"transforms": list(out.values())} if out else None
-
-    @staticmethod
-    def _tf(ts: dict[str, int], parent: str, child: str, p_mm: Sequence[float],
-            q: Quat) -> dict[str, Any]:
-        """One ``foxglove.FrameTransform``. Rounded to 1 nm and 1e-9 (far below what the arm
-        or the row can tell): full-precision noise digits do not compress, and the rounding
-        halves what ``/tf`` adds to the file."""
-        return {"timestamp": ts, "parent_frame_id": parent, "child_frame_id": child,
-                "translation": {"x": round(p_mm[0] * _MM, 9), "y": round(p_mm[1] * _MM, 9),
-                                "z": round(p_mm[2] * _MM, 9)},
-                "rotation": {"x": round(q[0], 9), "y": round(q[1], 9), "z": round(q[2], 9),
-                             "w": round(q[3], 9)}}
+                out[str(child)] = (str(parent), str(child), p, q)
+        return list(out.values())
 
     # -- /scene ---------------------------------------------------------------------------
 

@@ -325,9 +325,9 @@ class LiveView:
         log_ns = self._last_log_ns
         try:
             if self._channels[TF_TOPIC].has_sinks():
-                tf = view.transforms(row, log_ns)
+                tf = view.transforms_json(row, log_ns)
                 if tf is not None:
-                    self._log(TF_TOPIC, orjson.dumps(tf), log_ns)
+                    self._log(TF_TOPIC, tf, log_ns)
             if view.scene_due(t, self._last_scene_t):
                 self._last_scene_t = float(t)
                 if self._channels[SCENE_TOPIC].has_sinks():

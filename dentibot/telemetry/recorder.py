@@ -84,9 +84,9 @@ import math
 import os
 import threading
 import time
+from collections.abc import Callable
 from importlib import metadata as _importlib_metadata
 from pathlib import Path
-from collections.abc import Callable
 from typing import Any, BinaryIO, ClassVar
 
 import numpy as np
@@ -99,6 +99,7 @@ from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from dentibot.errors import ConfigError
 from dentibot.jsonsafe import finite as _finite
+from dentibot.telemetry.blocks import TickBlock
 from dentibot.telemetry.foxglove import (
     FOXGLOVE_TOPICS,
     SCENE_TOPIC,
@@ -106,6 +107,7 @@ from dentibot.telemetry.foxglove import (
     FoxgloveView,
     as_view,
 )
+from dentibot.telemetry.mcap_messages import add_messages
 from dentibot.telemetry.schema import (
     END_STATUSES,
     TOPICS,
@@ -320,12 +322,13 @@ class RecorderBase:
     #: what writes the file, in messages
     WRITER = "the writer"
 
-    def _overflow(self, row: Any) -> None:
-        self.rows_dropped += 1
+    def _overflow(self, row: Any, count: int = 1) -> None:
+        self.rows_dropped += count
         at_risk = self.rows_queued - self._settled
         tick = row.get("tick") if isinstance(row, dict) else None
+        what = f"tick {tick}" if count == 1 else f"ticks {tick} to {tick + count - 1}"
         detail = (f"{self.WRITER} made no room in {self.max_wait_s:g} s ({at_risk} ticks waiting "
-                  f"to reach the file, {self.rows_flushed} on disk): tick {tick} dropped, "
+                  f"to reach the file, {self.rows_flushed} on disk): {what} dropped, "
                   f"{self.rows_dropped} row(s) lost so far; the recording has a hole")
         if self.rows_dropped <= _LOG_FIRST:
             log.error("telemetry.overflow", path=str(self.path), tick=tick,
@@ -464,6 +467,8 @@ class McapRecorder(RecorderBase):
         self.view_errors = 0
 
         self._queue: collections.deque[tuple[str, Any]] = collections.deque()
+        #: messages encoded and not yet in the chunk: (channel, log time, data, sequence)
+        self._batch: list[tuple[int, int, bytes, int]] = []
         self._stop = threading.Event()
         self._wake = threading.Event()          # queue worth a chunk, a waiting producer, stop
         self._room = threading.Condition(threading.Lock())   # signalled after each flush
@@ -561,16 +566,41 @@ class McapRecorder(RecorderBase):
         if isinstance(tick, int):
             self._last_tick = tick
 
-    def _wait_for_room(self, row: Any) -> None:
+    def record_block(self, block: TickBlock) -> None:
+        """Queue a block of tick rows (:class:`~dentibot.telemetry.blocks.TickBlock`): the
+        same as :meth:`record` of each of its rows, with one wait for room for all of them (a
+        block larger than the budget goes in parts)."""
+        if self._error is not None or self._closed:
+            self._raise_dead()
+        n = len(block)
+        if n > self.budget:
+            for start in range(0, n, self.budget):
+                self.record_block(block.part(start, start + self.budget))
+            return
+        if not n:
+            return
+        if self.rows_queued - self._settled + n > self.budget:
+            self._wait_for_room({"tick": block.k0}, n)
+        q = self._queue
+        q.append(("block", block))
+        self.rows_queued += n
+        self.queue_depth_max = max(self.queue_depth_max, len(q))
+        self.at_risk_max = max(self.at_risk_max, self.rows_queued - self._settled)
+        self._wake.set()
+        self._last_tick = block.k0 + n - 1
+        self._last_t = self._last_tick * block.ts
+
+    def _wait_for_room(self, row: Any, n: int = 1) -> None:
+        """Wait until ``n`` more ticks fit in the budget."""
         self.backpressure_waits += 1
         deadline = time.monotonic() + self.max_wait_s
         with self._room:
-            while self.rows_queued - self._settled >= self.budget:
+            while self.rows_queued - self._settled + n > self.budget:
                 if self._error is not None:
                     break
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
-                    self._overflow(row)
+                    self._overflow(row, n)
                 self._wake.set()
                 self._room.wait(remaining)
         if self._error is not None:
@@ -695,6 +725,8 @@ class McapRecorder(RecorderBase):
         while q:
             kind, payload = q.popleft()
             handlers[kind](self, payload)
+            if self._batch:
+                self._add_batch()
             now = clock()
             if self._unflushed_ticks >= self.flush_ticks or (
                     self._unflushed and now - self._unflushed_since >= self.flush_interval_s):
@@ -748,8 +780,7 @@ class McapRecorder(RecorderBase):
             return False
         log_ns = _log_time_ns(self.start_wall_ns, t, self._last_log_ns)
         self._last_log_ns = log_ns
-        self._writer.add_message(self._channels[topic], log_ns, data, log_ns,
-                                 sequence=sequence & 0xFFFFFFFF)
+        self._batch.append((self._channels[topic], log_ns, data, sequence & 0xFFFFFFFF))
         if not self._unflushed:
             self._unflushed_since = time.monotonic()
         self._unflushed += 1
@@ -791,8 +822,7 @@ class McapRecorder(RecorderBase):
         view, log_ns = self.view, self._last_log_ns
         t = row.get("t")
         try:
-            tf = view.transforms(row, log_ns)
-            tf_data = None if tf is None else orjson.dumps(tf)
+            tf_data = view.transforms_json(row, log_ns)
             scene_data = orjson.dumps(view.scene(row, log_ns)) \
                 if view.scene_due(t, self._last_scene_t) else None
         except Exception as exc:  # noqa: BLE001 - a drawing problem, never the recording's
@@ -803,16 +833,23 @@ class McapRecorder(RecorderBase):
             return
         sequence &= 0xFFFFFFFF
         if tf_data is not None:
-            self._writer.add_message(self._channels[TF_TOPIC], log_ns, tf_data, log_ns,
-                                     sequence=sequence)
+            self._batch.append((self._channels[TF_TOPIC], log_ns, tf_data, sequence))
             self.transforms_written += 1
             self._unflushed += 1
         if scene_data is not None:
             self._last_scene_t = float(t)
-            self._writer.add_message(self._channels[SCENE_TOPIC], log_ns, scene_data, log_ns,
-                                     sequence=sequence)
+            self._batch.append((self._channels[SCENE_TOPIC], log_ns, scene_data, sequence))
             self.scenes_written += 1
             self._unflushed += 1
+
+    def _write_block(self, block: TickBlock) -> None:
+        """A block's rows, each as :meth:`_write_tick` writes a row; the chunk is finished
+        every ``flush_ticks`` as between rows."""
+        for row in block.rows():
+            del row["tooth_pose"]                 # None in a block: left out of the file
+            self._write_tick(row)
+            if self._unflushed_ticks >= self.flush_ticks:
+                self._flush()
 
     def _write_event(self, ev: dict[str, Any]) -> None:
         if self._write("/events", ev, ev["t"], ev["tick"] if isinstance(ev["tick"], int) else 0):
@@ -821,12 +858,19 @@ class McapRecorder(RecorderBase):
     def _write_end(self, end: dict[str, Any]) -> None:
         self._write("/run/end", end, self._last_t)
 
-    _HANDLERS: ClassVar[dict[str, Any]] = {"tick": _write_tick, "event": _write_event,
-                                           "end": _write_end}
+    _HANDLERS: ClassVar[dict[str, Any]] = {"tick": _write_tick, "block": _write_block,
+                                           "event": _write_event, "end": _write_end}
+
+    def _add_batch(self) -> None:
+        """The messages written since the last call, into the chunk in one call."""
+        batch, self._batch = self._batch, []
+        add_messages(self._writer, batch)
 
     def _flush(self) -> None:
         """Finish the chunk in progress and hand it, with a provisional end, to the OS in one
         write (and to the disk if fsync); then wake a producer waiting for room."""
+        if self._batch:
+            self._add_batch()
         self._writer.flush()
         self._sink.commit()
         if self._fsync and self._fd is not None:

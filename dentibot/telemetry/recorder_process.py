@@ -58,6 +58,7 @@ import structlog
 
 from dentibot.errors import ConfigError
 from dentibot.logs import configure_default, configure_logging, logging_settings
+from dentibot.telemetry.blocks import TickBlock
 from dentibot.telemetry.recorder import McapRecorder, RecorderBase, TelemetryOverflow
 from dentibot.telemetry.schema import END_STATUSES, TelemetryError
 
@@ -269,6 +270,30 @@ class RecorderProcess(RecorderBase):
                 time.monotonic() - self._pending_since >= self._send_after_s:
             self._send()
 
+    def record_block(self, block: TickBlock) -> None:
+        """Hand a block of tick rows over (:class:`~dentibot.telemetry.blocks.TickBlock`, one
+        pickled array): the same as :meth:`record` of each of its rows, with one wait for room
+        for all of them (a block larger than the budget goes in parts)."""
+        if self._dead is not None or self._closed:
+            self._raise_dead()
+        n = len(block)
+        if n > self.budget:
+            for start in range(0, n, self.budget):
+                self.record_block(block.part(start, start + self.budget))
+            return
+        if not n:
+            return
+        if self.rows_queued - self._settled + n > self.budget:
+            self._wait_for_room({"tick": block.k0}, n)
+        if not self._pending:
+            self._pending_since = time.monotonic()
+        self._pending.append(("block", block))
+        self.rows_queued += n
+        self.at_risk_max = max(self.at_risk_max, self.rows_queued - self._settled)
+        self.queue_depth_max = max(self.queue_depth_max, n)
+        self._last_t = (block.k0 + n - 1) * block.ts
+        self._send()
+
     def event(self, kind: str, detail: str = "", *, t: float | None = None,
               tick: int | None = None) -> None:
         """Hand an ``/events`` message over (with the next batch); ``t``/``tick`` default to
@@ -330,15 +355,16 @@ class RecorderProcess(RecorderBase):
             if msg[3] is not None and self._dead is None:
                 self._dead = msg[3]
 
-    def _wait_for_room(self, row: Any) -> None:
+    def _wait_for_room(self, row: Any, n: int = 1) -> None:
+        """Wait until ``n`` more ticks fit in the budget."""
         self.backpressure_waits += 1
         if self._pending:
             self._send()
         deadline = time.monotonic() + self.max_wait_s
-        while self.rows_queued - self._settled >= self.budget and self._dead is None:
+        while self.rows_queued - self._settled + n > self.budget and self._dead is None:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                self._overflow(row)
+                self._overflow(row, n)
             self._read_acks(remaining)
         if self._dead is not None:
             self._raise_dead()
@@ -485,6 +511,8 @@ def _child_main(rows: Connection, acks: Connection) -> None:
             try:
                 if kind == "tick":
                     rec.record(payload)
+                elif kind == "block":
+                    rec.record_block(payload)
                 else:
                     ev_kind, detail, t, tick = payload
                     rec.event(ev_kind, detail, t=t, tick=tick)

@@ -38,9 +38,11 @@ from array import array
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+import numpy as np
 from rich.table import Table
 
 from dentibot.errors import ConfigError
+from dentibot.telemetry.blocks import COL, TickBlock
 from dentibot.telemetry.reader import MessageStream, Recording
 from dentibot.telemetry.schema import END_STATUSES
 
@@ -192,6 +194,12 @@ class _Tick:
     lateness: float | None
 
 
+#: the columns of a block of rows a summary reads: depth, completeness, file torque, motor
+#: speed, the force (3)
+_BLOCK_READS = [COL["depth_mm"], COL["completeness"], COL["file_torque_mnm"], COL["motor_rpm"],
+                COL["wrench_h"], COL["wrench_h"] + 1, COL["wrench_h"] + 2]
+
+
 class SummaryAccumulator:
     """Feed rows with :meth:`add`, events with :meth:`add_event`, get a RunSummary from
     :meth:`finish`. ``rate_hz`` (the control rate) makes durations ticks x period; without
@@ -252,6 +260,57 @@ class SummaryAccumulator:
         figures.add(tick)
         for name in row.get("events") or ():
             self._detections[str(name)] = self._detections.get(str(name), 0) + 1
+
+    def add_block(self, block: TickBlock) -> None:
+        """Take a block of tick rows: the same as :meth:`add` of each of its rows, read from
+        its columns (a block's ticks share their step and reversals and have no events, no
+        fracture, no patient motion and no lateness). Maxima and norms are taken over the
+        columns at once (the same operations, element by element); sums tick after tick, as
+        :meth:`add` adds them."""
+        n = len(block)
+        if not n:
+            return
+        cols = block.cols[:, _BLOCK_READS]
+        if not np.isfinite(cols).all():           # an unknown value somewhere: row by row
+            for row in block.rows():
+                self.add(row)
+            return
+        step = str(block.step or "")
+        figures = self._steps.get(step)
+        if figures is None:
+            figures = self._steps[step] = _Figures()
+        rev = block.reversals
+        rev_step, self._prev_reversals = max(rev - self._prev_reversals, 0), rev
+        self._prev_fractured = self._prev_moved = False
+        depth, completeness, torque, rpm = cols[:, 0], cols[-1, 1], np.abs(cols[:, 2]), cols[:, 3]
+        fx, fy, fz = cols[:, 4], cols[:, 5], cols[:, 6]
+        force_peak = float(np.sqrt(fx * fx + fy * fy + fz * fz).max())
+        depth_max, torque_peak = float(depth.max()), float(torque.max())
+        turning = torque[rpm != 0.0].tolist()
+        prev, k, ts, dts = self._prev_t, block.k0, block.ts, []
+        for i in range(n):
+            t = (k + i) * ts
+            dts.append(max(t - prev, 0.0))
+            prev = t
+        self._prev_t = prev
+        lateness = [0.0] * n
+        for fig in (self._run, figures):
+            fig.ticks += n
+            duration = fig.duration_s
+            for dt in dts:
+                duration += dt
+            fig.duration_s = duration
+            fig.depth_max = _max(fig.depth_max, depth_max)
+            fig.completeness = float(completeness)
+            fig.torque_peak = _max(fig.torque_peak, torque_peak)
+            total = fig.torque_abs_sum
+            for x in turning:
+                total += x
+            fig.torque_abs_sum = total
+            fig.torque_n += len(turning)
+            fig.force_peak = _max(fig.force_peak, force_peak)
+            fig.reversals += rev_step
+            fig.lateness.extend(lateness)
 
     def add_event(self, kind: str, detail: str = "", *, t: float | None = None,
                   tick: int | None = None) -> None:

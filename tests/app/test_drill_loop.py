@@ -4,6 +4,8 @@ a fracture in a compiled world step)."""
 
 from __future__ import annotations
 
+import asyncio
+
 import pytest
 
 import dentibot.app.drill_loop as dl
@@ -84,3 +86,75 @@ def test_a_file_that_breaks_in_a_compiled_step(monkeypatch):
     assert fast == slow
     assert all(r["status"] == "fracture" for r in fast)
     assert any(c != 0 for c in seen["codes"])          # one broke inside the compiled loop
+
+
+#: The main job shortened, with reversals (a low tau_d in acrylic).
+RECORDED = """name: recorded
+seed: 4
+file: {size: 25, taper: 0.06, length_mm: 25}
+phantom: {working_length_mm: 16.0, orifice_gap_mm: 2.0, material: acrylic}
+patient: {motion: static}
+steps:
+  - calibrate_load: {}
+  - align: {duration_s: 0.2, fz_n: 1.0}
+  - drill: {strategy: automated, tau_d_mnm: 20, rpm: 60, rounds: [{duration_s: 6}]}
+"""
+
+
+def _recorded(tmp_path, compiled: bool, monkeypatch) -> tuple:
+    """A recorded run of :data:`RECORDED`: its summary, progress, the recording's messages
+    (each /tick without its compute time) and how many ticks went over in blocks."""
+    import orjson
+    from mcap.reader import make_reader
+
+    from dentibot.app.runner import ProtocolRunner
+    from dentibot.protocol.loader import load_protocol
+
+    in_blocks = []
+    block = ProtocolRunner._block
+    monkeypatch.setattr(ProtocolRunner, "_block",
+                        lambda self, b: (in_blocks.append(len(b)), block(self, b)))
+    progress: list[dict] = []
+    spec = tmp_path / "recorded.yaml"
+    spec.write_text(RECORDED)
+    path = tmp_path / f"run-{compiled}.mcap"
+    runner = ProtocolRunner(load_protocol(spec), recording=path, progress=progress.append,
+                            compiled_ticks=compiled)
+    result = asyncio.run(runner.run())
+    messages = []                  # after /run, at their log time from the run's start
+    with open(path, "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages():
+            obj = orjson.loads(message.data)
+            if channel.topic == "/run":
+                start = message.log_time
+                continue
+            if channel.topic == "/tick":
+                obj.pop("compute_us")
+            messages.append((channel.topic, message.log_time - start, _relative(obj, start)))
+    return result.summary, progress, messages, in_blocks
+
+
+def _relative(obj, start_ns: int):
+    """``obj`` with its Foxglove timestamps as ns from ``start_ns``."""
+    if isinstance(obj, dict):
+        return {k: v["sec"] * 1_000_000_000 + v["nsec"] - start_ns if k == "timestamp"
+                else _relative(v, start_ns) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_relative(v, start_ns) for v in obj]
+    return obj
+
+
+def test_a_recorded_run_hands_its_drilling_rows_over_in_blocks(tmp_path, monkeypatch):
+    """The CLI's run (recording, live summary, progress) with the drilling ticks compiled and
+    their rows in blocks records what the tick-by-tick run records: every /tick row (its
+    compute time aside), /tf, /scene and /events message, the same summary and progress."""
+    summary, progress, messages, blocks = _recorded(tmp_path, True, monkeypatch)
+    again, progress_again, messages_again, none = _recorded(tmp_path, False, monkeypatch)
+    assert not none and sum(blocks) > 2000          # most of the drilling went in blocks
+    assert max(blocks) <= 25                        # half the recorder's budget of 50 ticks
+    assert summary.reversals > 0 and summary == again
+    assert progress == progress_again
+    assert {"/tick", "/tf", "/scene", "/events"} <= {topic for topic, _, _ in messages}
+    assert len(messages) == len(messages_again)
+    for message, message_again in zip(messages, messages_again):
+        assert message == message_again

@@ -14,6 +14,7 @@ import pytest
 
 from dentibot.cli import main
 from dentibot.telemetry.reader import read_recording
+from dentibot.telemetry.schema import TelemetryError
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -39,6 +40,15 @@ steps:
 """
 
 
+def _drilling(path) -> bool:
+    """Whether the recording at ``path``, still being written, holds a drilling tick."""
+    try:
+        return any(row["state"].startswith("treating.drilling")
+                   for row in read_recording(path).rows)
+    except TelemetryError:                    # not there yet
+        return False
+
+
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)],
                          ids=["SIGINT", "SIGTERM"])
@@ -50,13 +60,12 @@ def test_a_signal_stops_safely_and_keeps_the_recording(tmp_path, sig, code):
         [sys.executable, "-m", "dentibot.cli", "run", str(protocol), "--out", str(rec),
          "--quiet", "--json"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
         text=True)
-    # press Ctrl-C 3 s (wall) after the recording starts: the calibration takes about 7 s of
-    # simulated time (under 1 s of wall time at ~15x real time), the drilling 400 s (over
-    # 20 s of wall time), so the file is in the canal whatever the machine's load
+    # press Ctrl-C as soon as the recording (readable as written) holds a drilling tick: the
+    # drilling then has about a minute of simulated time to go, seconds of wall time even at
+    # the compiled ticks' pace, so the file is in the canal whatever the machine's load
     deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and proc.poll() is None and not rec.exists():
-        time.sleep(0.05)
-    time.sleep(3.0)
+    while time.monotonic() < deadline and proc.poll() is None and not _drilling(rec):
+        time.sleep(0.02)
     assert proc.poll() is None, "the run ended before the signal"
     proc.send_signal(sig)
     stdout, stderr = proc.communicate(timeout=60)

@@ -50,16 +50,29 @@ def main_job(out: str) -> None:
     from dentibot.app.runner import ProtocolRunner
     from dentibot.protocol.loader import load_protocol
 
-    protocol = load_protocol(ROOT / "protocols" / "root-canal.yaml")
-    said: list[int] = []
+    class Reporting(ProtocolRunner):
+        """The CLI's runner, reporting each row after handing it over (the drilling ticks'
+        rows in blocks, as the CLI's run hands them over)."""
 
-    def tap(row: dict) -> None:
-        if not said:                          # the recorder process's id, once: "p<pid>"
-            said.append(runner.recorder.pid)
-            os.write(_REPORT_FD, b"p%d\n" % said[0])
-        _report(row["tick"])
+        said = False
 
-    runner = ProtocolRunner(protocol, recording=out, tap=tap)
+        def _say_pid(self) -> None:           # the recorder process's id, once: "p<pid>"
+            if not self.said:
+                self.said = True
+                os.write(_REPORT_FD, b"p%d\n" % self.recorder.pid)
+
+        def _row(self, row: dict) -> None:
+            super()._row(row)
+            self._say_pid()
+            _report(row["tick"])
+
+        def _block(self, block) -> None:
+            super()._block(block)
+            self._say_pid()
+            for k in block.ticks:
+                _report(k)
+
+    runner = Reporting(load_protocol(ROOT / "protocols" / "root-canal.yaml"), recording=out)
     asyncio.run(runner.run())
 
 

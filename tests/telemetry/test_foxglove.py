@@ -10,6 +10,8 @@ import foxglove.messages
 import numpy as np
 import pytest
 from foxglove_schema_rules import problems
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from mcap.reader import make_reader
 from telemetry_helpers import ramp_row
 
@@ -420,3 +422,17 @@ def test_without_a_view_only_the_dentibot_topics_are_written(tmp_path):
     assert json_schema("/tick")["title"] == "dentibot.Tick"
     with pytest.raises(ConfigError, match="view"):
         McapRecorder(tmp_path / "x.mcap", META, view="3d")
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.floats(-2000.0, 2000.0), min_size=6, max_size=6))
+def test_tf_numbers_are_the_row_rounded_to_a_nanometre(pose):
+    """/tf's JSON writes positions (m) and quaternions to 9 decimals: each reads back as
+    Python's round(x, 9) of the exact value."""
+    tool = [*pose[:3], *(math.fmod(a, 180.0) for a in pose[3:])]
+    msg = FoxgloveView().transforms(ramp_row(0, tool_pose=tool, phantom_pose=None), START_NS)
+    tip = msg["transforms"][0]
+    want = [round(x * 1e-3, 9) for x in tool[:3]]
+    assert [tip["translation"][k] for k in "xyz"] == want
+    q = quat_from_euler_xyz_deg(*tool[3:])
+    assert [tip["rotation"][k] for k in "xyzw"] == [round(x, 9) for x in q]

@@ -1,0 +1,116 @@
+"""Telemetry rows one at a time (:func:`tick_row`) and many at once (:class:`TickBlock`).
+
+A control tick's row (:data:`~dentibot.telemetry.schema.TICK_FIELDS`) is a dict built by
+:func:`tick_row`, the one place that lays it out. The built-in simulator's drilling ticks,
+run many per compiled call in lock-step time, write their rows' numbers into the columns of
+one array instead (:data:`COLUMNS`); a :class:`TickBlock` carries that array with what its
+ticks share (step, state, working length, reversals, the phantom's orientation) and gives the
+same dicts, through :func:`tick_row`, to readers that take rows one at a time. Readers that
+take blocks (the recorder, the run's summary) take the array itself: handing over a block of
+ticks costs about as much as handing over one row.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+__all__ = ["COL", "COLUMNS", "WIDTH", "TickBlock", "tick_row"]
+
+
+def tick_row(t: float, tick: int, step: str, state: str, q_deg: list, qdot_deg_s: list,
+             tool_pose: list, phantom_pose: list | None, tooth_pose: list | None,
+             wrench_s: list, wrench_h: list, fz_n: float, fz_star_n: float,
+             file_torque_mnm: float, motor_current_a: float, motor_rpm: float,
+             depth_mm: float | None, true_depth_mm: float | None, working_length_mm: float,
+             completeness: float | None, patient_moved: bool, reversals: int,
+             fractured: bool, events: list, lateness_us: float, compute_us: float,
+             overrun: bool) -> dict[str, Any]:
+    """One tick's telemetry row (the fields and their order: ``TICK_FIELDS``); ``f_d`` is
+    ``(0, 0, fz_n, 0, 0, 0)``."""
+    return {
+        "t": t, "tick": tick, "step": step, "state": state, "q_deg": q_deg,
+        "qdot_cmd_deg_s": qdot_deg_s, "tool_pose": tool_pose, "phantom_pose": phantom_pose,
+        "tooth_pose": tooth_pose, "wrench_s": wrench_s, "wrench_h": wrench_h,
+        "f_d": [0.0, 0.0, fz_n, 0.0, 0.0, 0.0], "fz_star_n": fz_star_n, "fz_n": fz_n,
+        "file_torque_mnm": file_torque_mnm, "motor_current_a": motor_current_a,
+        "motor_rpm": motor_rpm, "depth_mm": depth_mm, "true_depth_mm": true_depth_mm,
+        "working_length_mm": working_length_mm, "completeness": completeness,
+        "patient_moved": patient_moved, "reversals": reversals, "fractured": fractured,
+        "events": events, "lateness_us": lateness_us, "compute_us": compute_us,
+        "overrun": overrun,
+    }
+
+
+#: A block's columns per tick: (name, width). ``tool_pose`` is the tip (mm) and the tool's
+#: mobile XYZ Euler angles (deg); ``phantom_xyz`` the phantom's origin in {0} (mm).
+COLUMNS: tuple[tuple[str, int], ...] = (
+    ("q_deg", 6), ("qdot_cmd_deg_s", 6), ("tool_pose", 6), ("phantom_xyz", 3),
+    ("wrench_s", 6), ("wrench_h", 6), ("fz_n", 1), ("fz_star_n", 1), ("file_torque_mnm", 1),
+    ("motor_current_a", 1), ("motor_rpm", 1), ("depth_mm", 1), ("true_depth_mm", 1),
+    ("completeness", 1), ("compute_us", 1),
+)
+#: each column's first index in a block's row
+COL: dict[str, int] = {}
+WIDTH = 0
+for _name, _width in COLUMNS:
+    COL[_name], WIDTH = WIDTH, WIDTH + _width
+del _name, _width
+
+_Q, _QD, _TOOL, _PH = COL["q_deg"], COL["qdot_cmd_deg_s"], COL["tool_pose"], COL["phantom_xyz"]
+_WS, _WH = COL["wrench_s"], COL["wrench_h"]
+
+
+@dataclass(slots=True)
+class TickBlock:
+    """The rows of ticks ``k0``, ``k0 + 1``, ... of one state of a lock-step run on the built-in
+    simulator, with no event among them: ``cols[i]`` holds tick ``k0 + i``'s numbers
+    (:data:`COLUMNS`), the rest is what they share."""
+
+    cols: np.ndarray
+    k0: int
+    ts: float
+    step: str
+    state: str
+    working_length_mm: float
+    reversals: int
+    #: the phantom's orientation (mobile XYZ Euler, deg) beside ``phantom_xyz``
+    phantom_euler: tuple[float, float, float]
+
+    def __len__(self) -> int:
+        return self.cols.shape[0]
+
+    @property
+    def ticks(self) -> range:
+        return range(self.k0, self.k0 + self.cols.shape[0])
+
+    def rows(self, start: int = 0, stop: int | None = None) -> list[dict[str, Any]]:
+        """Rows ``start`` to ``stop`` as dicts, each as the control task builds it."""
+        out = []
+        k, ts, step, state = self.k0 + start, self.ts, self.step, self.state
+        wl, rev, peul = self.working_length_mm, self.reversals, list(self.phantom_euler)
+        c = COL
+        fz_i, star_i, tau_i, cur_i = c["fz_n"], c["fz_star_n"], c["file_torque_mnm"], \
+            c["motor_current_a"]
+        rpm_i, d_i, td_i, cm_i, us_i = c["motor_rpm"], c["depth_mm"], c["true_depth_mm"], \
+            c["completeness"], c["compute_us"]
+        for r in self.cols[start:stop].tolist():
+            out.append(tick_row(
+                k * ts, k, step, state, r[_Q:_Q + 6], r[_QD:_QD + 6], r[_TOOL:_TOOL + 6],
+                [*r[_PH:_PH + 3], *peul], None, r[_WS:_WS + 6], r[_WH:_WH + 6], r[fz_i],
+                r[star_i], r[tau_i], r[cur_i], r[rpm_i], r[d_i], r[td_i], wl, r[cm_i], False,
+                rev, False, [], 0.0, r[us_i], False))
+            k += 1
+        return out
+
+    def part(self, start: int, stop: int) -> TickBlock:
+        """Ticks ``start`` to ``stop`` of the block, as a block."""
+        return TickBlock(self.cols[start:stop], self.k0 + start, self.ts, self.step, self.state,
+                         self.working_length_mm, self.reversals, self.phantom_euler)
+
+    def row(self, i: int) -> dict[str, Any]:
+        """Row ``i`` (negative: from the end) as a dict."""
+        i = range(len(self))[i]
+        return self.rows(i, i + 1)[0]
