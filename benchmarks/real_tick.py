@@ -8,8 +8,9 @@ job (``protocols/root-canal.yaml``) on the built-in simulator in lock-step time,
 summary, a progress callback every 250 ticks formatting the CLI's figures, and, by default,
 the MCAP recorder (``--no-record``: without it). Every step of the protocol runs; the figures
 are those of its drill step (``--seconds S``: one drilling round of S simulated seconds
-instead of the protocol's rounds), timed from its first row to its last by a tap on the rows
-(one call per tick, counted in the breakdown as ``bench_tap``).
+instead of the protocol's rounds), timed from its first progress report to its last (the
+progress callback is the timer; a tap on the rows would keep the drilling ticks out of the
+compiled loop, :mod:`dentibot.app.drill_loop`, as it keeps any caller's tap).
 
 - ``us_per_tick``: wall time per tick of the drill step; ``speed_factor``: simulated seconds
   per wall second;
@@ -21,14 +22,17 @@ instead of the protocol's rounds), timed from its first row to its last by a tap
   the writer's back-pressure);
 - ``breakdown``: one more run with ``time.perf_counter_ns`` hooks around each component
   (exclusive time: a component's time excludes the hooked components it calls), us per tick:
+  ``drill_kernel`` (the compiled drilling ticks: every law of those ticks, their rows' numbers
+  and the world's steps between them), ``drill_loop`` (preparing each compiled call and
+  bringing the Python side up to date after it); for the ticks the control task runs itself:
   ``world_step``, ``control`` (forward chain, estimate, admittance law and arm command),
   ``supervisor``, ``state_machine`` (behaviours' detection and entry, the machine's
   transitions), ``device_shims`` (the in-process device reads and commands),
   ``telemetry_row`` (building the row) and ``sim_truth`` (the simulator's truth fields in it),
-  ``live_summary``, ``recorder_record`` (the control thread's side of the recorder, including
-  any back-pressure wait), ``progress``, ``gate`` (work between two ticks), ``bench_tap`` and
-  ``glue`` (everything else: the tick's own code, the clock, the event loop). The hooks cost a
-  little themselves (``hooked_us_per_tick`` beside ``us_per_tick``).
+  ``live_summary`` (rows and blocks), ``recorder_record`` (the control thread's side of the
+  recorder, rows and blocks, including any back-pressure wait), ``progress``, ``gate`` (work
+  between two ticks) and ``glue`` (everything else: the tick's own code, the clock, the event
+  loop). The hooks cost a little themselves (``hooked_us_per_tick`` beside ``us_per_tick``).
 """
 
 from __future__ import annotations
@@ -50,6 +54,8 @@ import structlog
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from dentibot.app import drill_kernels
+from dentibot.app.drill_loop import DrillLoop
 from dentibot.app.runner import ProtocolRunner
 from dentibot.cli.run import _figures_text
 from dentibot.protocol.loader import load_protocol
@@ -61,9 +67,9 @@ from dentibot.telemetry.recorder_process import RecorderProcess
 ROOT = Path(__file__).resolve().parents[1]
 PROTOCOL = ROOT / "protocols" / "root-canal.yaml"
 DRILL = "drill"
-COMPONENTS = ("world_step", "control", "supervisor", "state_machine", "device_shims",
-              "telemetry_row", "sim_truth", "live_summary", "recorder_record", "progress",
-              "gate", "bench_tap", "glue")
+COMPONENTS = ("drill_kernel", "drill_loop", "world_step", "control", "supervisor",
+              "state_machine", "device_shims", "telemetry_row", "sim_truth", "live_summary",
+              "recorder_record", "progress", "gate", "glue")
 
 
 def main_job(seconds: float | None = None) -> Protocol:
@@ -163,10 +169,14 @@ def _hook_runner(h: _Hooks, runner: ProtocolRunner) -> None:
     h.patch(control_task, "telemetry_row", "telemetry_row")
     h.patch(rt, "truth", "sim_truth")
     h.patch(runner.acc, "add", "live_summary")
-    h.patch(McapRecorder, "record", "recorder_record")
-    h.patch(RecorderProcess, "record", "recorder_record")
+    h.patch(runner.acc, "add_block", "live_summary")
+    for cls in (McapRecorder, RecorderProcess):
+        h.patch(cls, "record", "recorder_record")
+        h.patch(cls, "record_block", "recorder_record")
     h.patch(runner, "progress", "progress")
     h.patch(proc.gate, "between", "gate")
+    h.patch(drill_kernels, "drill_ticks", "drill_kernel")
+    h.patch(DrillLoop, "__call__", "drill_loop")
 
 
 def _process_cpu_s(pid: int) -> float | None:
@@ -188,7 +198,9 @@ def _thread_cpu_s(thread) -> float | None:
 
 
 class _DrillTap:
-    """The runner's row tap: times the drill step from its first row to its last."""
+    """The runner's progress callback (every 250 ticks, formatting the CLI's figures): times
+    the drill step from its first report to its last. Not a tap on the rows: a tap sees each
+    row as its tick ends, which keeps the drilling ticks out of the compiled loop."""
 
     def __init__(self, hooks: _Hooks | None = None) -> None:
         self.runner: ProtocolRunner | None = None
@@ -206,19 +218,19 @@ class _DrillTap:
         pid = getattr(rec, "pid", None)        # the recorder process, or the writer thread
         return _process_cpu_s(pid) if pid is not None else _thread_cpu_s(rec._thread)
 
-    def __call__(self, row: dict) -> None:
-        step = row["step"]
-        if not step.endswith(":" + DRILL):
+    def __call__(self, figures: dict) -> None:
+        _figures_text(figures)
+        if not figures["step"].endswith(":" + DRILL):
             return
+        tick = round(figures["t"] / self.runner.rt.ts)
         if self.tick0 < 0:
             if self.hooks is not None:
                 self.hooks.ns.clear()
             self.cpu0 = time.thread_time()
             self.wcpu0 = self._writer_cpu_s()
-            self.t0, self.tick0 = time.perf_counter_ns(), row["tick"]
-        elif row["tick"] % 500 == 0 or row["state"] == "done":
-            # the window ends here (sampled, not every row: the tap's own cost stays small)
-            self.t1, self.tick1 = time.perf_counter_ns(), row["tick"]
+            self.t0, self.tick0 = time.perf_counter_ns(), tick
+        else:
+            self.t1, self.tick1 = time.perf_counter_ns(), tick
             self.cpu1 = time.thread_time()
             self.wcpu1 = self._writer_cpu_s()
             if self.hooks is not None:
@@ -232,12 +244,11 @@ def run_cli(seconds: float | None = None, record: bool = True, breakdown: bool =
     path = (out_dir or Path(tempfile.gettempdir())) / "dentibot-bench-real-tick.mcap"
     hooks = _Hooks()
     tap = _DrillTap(hooks if breakdown else None)
-    runner = ProtocolRunner(protocol, recording=path, progress=lambda f: _figures_text(f),
-                            overwrite=True, no_record=not record, tap=tap)
+    runner = ProtocolRunner(protocol, recording=path, progress=tap, overwrite=True,
+                            no_record=not record)
     tap.runner = runner
     if breakdown:
         _hook_runner(hooks, runner)
-        runner._tap = hooks.wrap("bench_tap", tap)
     t0 = time.perf_counter()
     try:
         result = asyncio.run(runner.run())

@@ -342,9 +342,10 @@ def stamp(ns: int) -> dict[str, int]:
     return {"sec": sec, "nsec": nsec}
 
 
-#: one ``foxglove.FrameTransform`` in JSON: stamp, parent and child (quoted), translation (m)
-#: and rotation, to 1e-9
-_TF_JSON = ('{"timestamp":{"sec":%d,"nsec":%d},"parent_frame_id":%s,"child_frame_id":%s,'
+#: one ``foxglove.FrameTransform`` in JSON: its stamp, then parent and child (quoted),
+#: translation (m) and rotation, to 1e-9
+_TF_STAMP = '{"timestamp":{"sec":%d,"nsec":%d},'
+_TF_JSON = ('"parent_frame_id":%s,"child_frame_id":%s,'
             '"translation":{"x":%.9f,"y":%.9f,"z":%.9f},'
             '"rotation":{"x":%.9f,"y":%.9f,"z":%.9f,"w":%.9f}}')
 _QUOTED: dict[str, str] = {}
@@ -434,6 +435,9 @@ class FoxgloveView:
         # (Euler angles, quaternion) of the last phantom pose: a cache, not state (a stale
         # entry is recomputed; the pair is stored in one assignment, safe across threads)
         self._tooth_q: tuple[list, Quat] | None = None
+        # per child frame, its last transform and that transform's JSON (without the stamp):
+        # a cache as well (frames that do not move are not written out again)
+        self._tf_texts: dict[str, tuple[tuple, str]] = {}
         if frames is not None and not callable(frames):
             raise ConfigError("foxglove.frames", frames, "a callable row -> (parent, child, T)")
         self._tool: tuple[Quat, Vec] | None = None
@@ -501,10 +505,21 @@ class FoxgloveView:
         if not frames:
             return None
         sec, nsec = divmod(int(log_ns), 1_000_000_000)
-        return ('{"transforms":[' + ",".join(
-            _TF_JSON % (sec, nsec, _quoted(parent), _quoted(child), p[0] * _MM, p[1] * _MM,
-                        p[2] * _MM, q[0], q[1], q[2], q[3])
-            for parent, child, p, q in frames) + "]}").encode()
+        stamped = _TF_STAMP % (sec, nsec)
+        texts = self._tf_texts
+        parts = []
+        for parent, child, p, q in frames:
+            key = (parent, *p, *q)
+            last = texts.get(child)
+            if last is not None and last[0] == key:     # a frame that did not move
+                text = last[1]
+            else:
+                text = _TF_JSON % (_quoted(parent), _quoted(child), p[0] * _MM, p[1] * _MM,
+                                   p[2] * _MM, q[0], q[1], q[2], q[3])
+                if child in texts or len(texts) < 64:
+                    texts[child] = (key, text)          # one atomic store
+            parts.append(stamped + text)
+        return ('{"transforms":[' + ",".join(parts) + "]}").encode()
 
     def _frames(self, row: dict[str, Any]) -> list[tuple[str, str, Sequence[float], Quat]]:
         """The frames ``row`` places: (parent, child, position in mm, rotation)."""

@@ -380,6 +380,10 @@ class McapRecorder(RecorderBase):
     - ``on_flush`` [None]: called in the writer thread after each flush, with the recorder
       (its counters are those of the flush); :mod:`~dentibot.telemetry.recorder_process`
       reports flushes to the control process with it. An exception in it kills the writer.
+    - ``writer_thread`` [True]: write in a thread of its own; False: write in the caller's
+      thread, within ``record()``, ``record_block()`` and ``event()``, the caller calling
+      :meth:`flush_due` when it has nothing to hand over (the recorder process, whose only
+      work this is).
 
     The writer is a daemon thread: call :meth:`close` (or use ``with``); a process that ends
     without it leaves a file readable up to its last flush, flagged incomplete.
@@ -399,7 +403,8 @@ class McapRecorder(RecorderBase):
                  chunk_size: int = 1 << 20, compression: str = "zstd",
                  fsync: bool = False, validate: bool = True, overwrite: bool = False,
                  view: FoxgloveView | bool | None = True,
-                 on_flush: Callable[[McapRecorder], None] | None = None) -> None:
+                 on_flush: Callable[[McapRecorder], None] | None = None,
+                 writer_thread: bool = True) -> None:
         if not flush_interval_s > 0:
             raise ConfigError("telemetry.flush_interval_s", flush_interval_s, "> 0 s")
         if not poll_s > 0:
@@ -529,9 +534,11 @@ class McapRecorder(RecorderBase):
         except OSError as exc:
             self._abandon()
             raise TelemetryError(self.path, f"cannot write: {exc}") from exc
-        self._thread = threading.Thread(target=self._run, name=f"mcap-writer:{self.path.name}",
-                                        daemon=True)
-        self._thread.start()
+        self._thread: threading.Thread | None = None
+        if writer_thread:
+            self._thread = threading.Thread(target=self._run,
+                                            name=f"mcap-writer:{self.path.name}", daemon=True)
+            self._thread.start()
         log.info("telemetry.recording", path=str(self.path), rate_hz=rate,
                  budget_ticks=self.budget)
 
@@ -565,6 +572,8 @@ class McapRecorder(RecorderBase):
         tick = row.get("tick")
         if isinstance(tick, int):
             self._last_tick = tick
+        if self._thread is None:
+            self._write_now()
 
     def record_block(self, block: TickBlock) -> None:
         """Queue a block of tick rows (:class:`~dentibot.telemetry.blocks.TickBlock`): the
@@ -589,10 +598,16 @@ class McapRecorder(RecorderBase):
         self._wake.set()
         self._last_tick = block.k0 + n - 1
         self._last_t = self._last_tick * block.ts
+        if self._thread is None:
+            self._write_now()
 
     def _wait_for_room(self, row: Any, n: int = 1) -> None:
-        """Wait until ``n`` more ticks fit in the budget."""
+        """Wait until ``n`` more ticks fit in the budget (without a writer thread: make room
+        by finishing the chunk now)."""
         self.backpressure_waits += 1
+        if self._thread is None:
+            self._write_now(flush=True)
+            return
         deadline = time.monotonic() + self.max_wait_s
         with self._room:
             while self.rows_queued - self._settled + n > self.budget:
@@ -617,6 +632,27 @@ class McapRecorder(RecorderBase):
             "tick": self._last_tick if tick is None else tick,
             "kind": kind, "detail": detail}))
         self.events_queued += 1
+        if self._thread is None:
+            self._write_now()
+
+    def flush_due(self) -> None:
+        """Without a writer thread: finish the chunk if its oldest item has waited
+        ``flush_interval_s`` (call it when nothing was handed over for that long)."""
+        if self._thread is None and self._unflushed and \
+                time.monotonic() - self._unflushed_since >= self.flush_interval_s:
+            self._write_now(flush=True)
+
+    def _write_now(self, flush: bool = False) -> None:
+        """Without a writer thread: write what is queued (and finish the chunk), here."""
+        if self._error is not None:
+            self._raise_dead()
+        try:
+            self._drain()
+            if flush and self._unflushed:
+                self._flush()
+        except BaseException as exc:  # noqa: BLE001 - reported to the caller, never lost
+            self._died(exc)
+            self._raise_dead()
 
     @property
     def queue_depth(self) -> int:
@@ -655,7 +691,7 @@ class McapRecorder(RecorderBase):
         self._queue.append(("end", self.end))
         self._stop.set()
         self._wake.set()
-        self._thread.join()
+        self._join()
         log.info("telemetry.closed", path=str(self.path), status=status,
                  ticks_written=self.ticks_written, rows_dropped=self.rows_dropped,
                  queue_depth_max=self.queue_depth_max, at_risk_max=self.at_risk_max,
@@ -674,13 +710,21 @@ class McapRecorder(RecorderBase):
         self._unfinished = True
         self._stop.set()
         self._wake.set()
-        self._thread.join()
+        self._join()
         log.warning("telemetry.unfinished", path=str(self.path), ticks_written=self.ticks_written)
+
+    def _join(self) -> None:
+        """The writer's end (asked for with ``_stop``): its thread's, or here."""
+        if self._thread is not None:
+            self._thread.join()
+        elif self._error is None:
+            self._run()
 
     def _raise_dead(self) -> None:
         if self._error is not None:
             self._error_reported = True
-            raise TelemetryError(self.path, f"writer thread died: {self._error!r}; rows since "
+            writer = "writer" if self._thread is None else "writer thread"
+            raise TelemetryError(self.path, f"{writer} died: {self._error!r}; rows since "
                                  f"the last flush ({self.rows_flushed} ticks on disk) are lost"
                                  ) from self._error
         raise TelemetryError(self.path, "recorder is closed")
@@ -710,12 +754,15 @@ class McapRecorder(RecorderBase):
             self.bytes_flushed = self._sink.pos
             self._close_file()
         except BaseException as exc:  # noqa: BLE001 - reported to the caller, never lost
-            self._error = exc
-            log.error("telemetry.writer_died", path=str(self.path), error=repr(exc),
-                      ticks_written=self.ticks_written, rows_flushed=self.rows_flushed)
-            self._abandon()
-            with self._room:
-                self._room.notify_all()          # a producer waiting for room learns it now
+            self._died(exc)
+
+    def _died(self, exc: BaseException) -> None:
+        self._error = exc
+        log.error("telemetry.writer_died", path=str(self.path), error=repr(exc),
+                  ticks_written=self.ticks_written, rows_flushed=self.rows_flushed)
+        self._abandon()
+        with self._room:
+            self._room.notify_all()              # a producer waiting for room learns it now
 
     def _drain(self) -> None:
         q = self._queue
@@ -731,7 +778,7 @@ class McapRecorder(RecorderBase):
             if self._unflushed_ticks >= self.flush_ticks or (
                     self._unflushed and now - self._unflushed_since >= self.flush_interval_s):
                 self._flush()
-            if now >= slice_end:
+            if now >= slice_end and self._thread is not None:
                 time.sleep(0)                     # hand the interpreter lock to the control thread
                 slice_end = clock() + _SLICE_S
 

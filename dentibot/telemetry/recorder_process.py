@@ -481,7 +481,8 @@ def _child_main(rows: Connection, acks: Connection) -> None:
             pass                                 # the parent is gone: the main loop sees it
 
     try:
-        rec = McapRecorder(path, metadata, on_flush=flushed, **options)
+        # written here, in the process's one thread: no writer thread to hand the rows to
+        rec = McapRecorder(path, metadata, on_flush=flushed, writer_thread=False, **options)
     except BaseException as exc:  # noqa: BLE001 - sent to the parent, raised there
         report(("error", exc if _pickles(exc) else TelemetryError(path, repr(exc))))
         return
@@ -492,6 +493,15 @@ def _child_main(rows: Connection, acks: Connection) -> None:
     dead: TelemetryError | None = None
     while True:
         try:
+            if not rows.poll(rec.flush_interval_s):
+                if dead is None:
+                    try:
+                        rec.flush_due()          # the rows of a pause reach the file
+                    except TelemetryError as exc:
+                        dead = exc
+                        report(("dead", exc if _pickles(exc) else TelemetryError(path, repr(exc)),
+                                _counters(rec)))
+                continue
             items = pickle.loads(rows.recv_bytes())
         except (EOFError, OSError, _Terminated):  # the control process is gone, or ending
             rec.close_unfinished()               # without closing (daemon: terminated)
