@@ -289,4 +289,4 @@ def euler_xyz_deg(R) -> tuple[float, float, float]:
     same as :func:`pose_from_matrix` (scipy) gives, in closed form
     (:func:`~dentibot.control.kinematics_kernels.euler_xyz_deg`): for the 500 Hz telemetry,
     where scipy's per-call cost (about 50 us) would be most of the tick."""
-    return _euler_xyz_deg(np.asarray(R, dtype=np.float64))
+    return _euler_xyz_deg(np.ascontiguousarray(R, dtype=np.float64))

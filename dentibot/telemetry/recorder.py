@@ -1,8 +1,12 @@
 """MCAP recorder: one message per control tick, written by a thread, crash-safe.
 
-:class:`McapRecorder` is fed from the control task: ``record(row)`` and ``event(...)`` append to
-a :class:`collections.deque` (no I/O, no serialisation) and return; a writer thread pops the
-queue, serialises each item as JSON and writes it to the MCAP file.
+:class:`McapRecorder` is fed from the control task: ``record(row)``, ``record_block(block)``
+(many ticks' rows in one array, :class:`~dentibot.telemetry.blocks.TickBlock`) and
+``event(...)`` append to a :class:`collections.deque` (no I/O, no serialisation) and return; a
+writer thread pops the queue, serialises each item as JSON and writes it to the MCAP file
+(each item's messages into the chunk in one call:
+:func:`~dentibot.telemetry.mcap_messages.add_messages`). Without a writer thread
+(``writer_thread=False``, the recorder process's way) the caller's thread writes.
 
 What a crash can cost. A recording is the record of a procedure, so a crash (``kill -9``, power
 cut without ``fsync``, interpreter abort) must lose at most ``max_at_risk_s`` (0.1 s) of

@@ -1,11 +1,12 @@
 """The MCAP recorder in a process of its own: the control task hands rows over and goes on.
 
-Why. :class:`~dentibot.telemetry.recorder.McapRecorder`'s writer thread spends about 30 us of
-CPU per tick (the mcap library's records in pure Python, the ``/tf`` view, JSON), all of it
-holding the interpreter lock the control task needs: in lock-step runs the recorder made the
-tick about 1.4x slower. :class:`RecorderProcess` runs that same recorder, unchanged, in a
-child process, on another core and under another interpreter lock. The control task pays for
-pickling its rows in batches (about 3 us a row) and one pipe write per batch.
+Why. :class:`~dentibot.telemetry.recorder.McapRecorder`'s writer spends 20-30 us of CPU per
+tick (JSON, the ``/tf`` view, the mcap library's records, compression), all of it holding the
+interpreter lock the control task needs. :class:`RecorderProcess` runs that same recorder in a
+child process, on another core and under another interpreter lock, writing in the child's
+one thread. The control task pays for pickling its rows in batches (about 3 us a row), or a
+block of rows as one array (:meth:`RecorderProcess.record_block`), and one pipe write per
+batch.
 
 Same guarantees as :class:`~dentibot.telemetry.recorder.McapRecorder`, with the same
 parameters:

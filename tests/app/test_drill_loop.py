@@ -148,8 +148,15 @@ def test_a_recorded_run_hands_its_drilling_rows_over_in_blocks(tmp_path, monkeyp
     """The CLI's run (recording, live summary, progress) with the drilling ticks compiled and
     their rows in blocks records what the tick-by-tick run records: every /tick row (its
     compute time aside), /tf, /scene and /events message, the same summary and progress."""
+    from dentibot.control import kinematics_kernels as kk
+    from dentibot.sim import canal_kernels as ck
+
+    # the kernels the rows' numbers take, compiled at import for the types the runs pass
+    kernels = (kk.tool_euler_deg, kk.euler_xyz_deg, ck.red_area)
+    before = [list(k.signatures) for k in kernels]
     summary, progress, messages, blocks = _recorded(tmp_path, True, monkeypatch)
     again, progress_again, messages_again, none = _recorded(tmp_path, False, monkeypatch)
+    assert [list(k.signatures) for k in kernels] == before
     assert not none and sum(blocks) > 2000          # most of the drilling went in blocks
     assert max(blocks) <= 25                        # half the recorder's budget of 50 ticks
     assert summary.reversals > 0 and summary == again
