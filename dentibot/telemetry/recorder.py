@@ -339,6 +339,19 @@ class RecorderBase:
                       rows_dropped=self.rows_dropped, at_risk=at_risk)
         raise TelemetryOverflow(self.path, detail, self.rows_dropped)
 
+    def _in_parts_or_empty(self, block: TickBlock) -> bool:
+        """Before a block is handed over: True when there is nothing more to do with it (empty,
+        or larger than the budget and handed over in parts here); else wait until it fits in
+        the budget of ticks at risk."""
+        n = len(block)
+        if n > self.budget:
+            for start in range(0, n, self.budget):
+                self.record_block(block.part(start, start + self.budget))
+            return True
+        if n and self.rows_queued - self._settled + n > self.budget:
+            self._wait_for_room({"tick": block.k0}, n)
+        return not n
+
     def __enter__(self):
         return self
 
@@ -585,15 +598,9 @@ class McapRecorder(RecorderBase):
         block larger than the budget goes in parts)."""
         if self._error is not None or self._closed:
             self._raise_dead()
+        if self._in_parts_or_empty(block):
+            return
         n = len(block)
-        if n > self.budget:
-            for start in range(0, n, self.budget):
-                self.record_block(block.part(start, start + self.budget))
-            return
-        if not n:
-            return
-        if self.rows_queued - self._settled + n > self.budget:
-            self._wait_for_room({"tick": block.k0}, n)
         q = self._queue
         q.append(("block", block))
         self.rows_queued += n

@@ -277,15 +277,9 @@ class RecorderProcess(RecorderBase):
         for all of them (a block larger than the budget goes in parts)."""
         if self._dead is not None or self._closed:
             self._raise_dead()
+        if self._in_parts_or_empty(block):
+            return
         n = len(block)
-        if n > self.budget:
-            for start in range(0, n, self.budget):
-                self.record_block(block.part(start, start + self.budget))
-            return
-        if not n:
-            return
-        if self.rows_queued - self._settled + n > self.budget:
-            self._wait_for_room({"tick": block.k0}, n)
         if not self._pending:
             self._pending_since = time.monotonic()
         self._pending.append(("block", block))
