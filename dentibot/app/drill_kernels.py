@@ -1,7 +1,7 @@
 """The built-in simulator's drilling ticks in one compiled call (numba): while a procedure
-feeds, turns back or withdraws the file in lock-step time with nobody reading telemetry rows,
-tick after tick of ``treating.drilling.feeding``, ``treating.drilling.reversing`` or
-``treating.retracting`` runs here, each exactly as the control task runs it
+feeds, turns back or withdraws the file in lock-step time, tick after tick of
+``treating.drilling.feeding``, ``treating.drilling.reversing`` or ``treating.retracting``
+runs here, each exactly as the control task runs it
 (:meth:`~dentibot.runtime.control_task.Runtime.tick`): the simulated devices' readings, the
 supervisor's input checks, the estimate, the observers, the estimate's checks, the state's
 detection (feeding: the drilling guard, the strategy's decision, feeding's reversal checks;

@@ -1,8 +1,8 @@
 """The built-in simulator's drilling ticks, many in one compiled call.
 
-A procedure on the built-in simulator in lock-step time, with nobody reading telemetry rows
-(an in-silico trial, a study that reads the runtime and the world after each tick), spends
-most of its ticks feeding the file (``treating.drilling.feeding``), turning it back
+A procedure on the built-in simulator in lock-step time (an in-silico trial, a study that
+reads the runtime and the world after each tick, a protocol run that records) spends most of
+its ticks feeding the file (``treating.drilling.feeding``), turning it back
 (``treating.drilling.reversing``) or withdrawing it (``treating.retracting``), where nothing
 happens tick after tick but the laws themselves.
 :class:`DrillLoop` runs such ticks in :func:`~dentibot.app.drill_kernels.drill_ticks`, which
@@ -29,6 +29,12 @@ is a multiple of it, so that a reader can look at the world there.
 :class:`~dentibot.app.runner.ProtocolRunner` uses it when nothing reads rows and its
 ``on_tick`` has a ``ticks`` method taking them in bulk (the in-silico trials' meter, the
 pre-clinical experiment's trace).
+
+Where rows are read, ``on_block(block)`` (``Runtime.on_block``) replaces the ``sink`` for the
+ticks run here: each call's rows as one :class:`~dentibot.telemetry.blocks.TickBlock`, their
+numbers written by the compiled ticks, their compute time the call's shared out. A call then
+runs at most ``block_ticks`` ticks (the runner gives half a recorder's budget of ticks at
+risk, as its writer flushes).
 """
 
 from __future__ import annotations
