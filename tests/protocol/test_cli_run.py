@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from dentibot.cli import main
-from dentibot.telemetry.reader import read_recording
+from dentibot.telemetry.reader import MessageStream, read_recording
 from dentibot.telemetry.schema import TelemetryError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -41,10 +41,11 @@ steps:
 
 
 def _drilling(path) -> bool:
-    """Whether the recording at ``path``, still being written, holds a drilling tick."""
+    """Whether the recording at ``path``, still being written, holds a drilling tick: read
+    from the start up to the first one (the file grows faster than a whole read)."""
     try:
-        return any(row["state"].startswith("treating.drilling")
-                   for row in read_recording(path).rows)
+        return any(topic == "/tick" and obj["state"].startswith("treating.drilling")
+                   for topic, obj in MessageStream(path))
     except TelemetryError:                    # not there yet
         return False
 
