@@ -61,6 +61,9 @@ del _name, _width
 
 _Q, _QD, _TOOL, _PH = COL["q_deg"], COL["qdot_cmd_deg_s"], COL["tool_pose"], COL["phantom_xyz"]
 _WS, _WH = COL["wrench_s"], COL["wrench_h"]
+_FZ, _STAR, _TAU, _CUR, _RPM, _DEPTH, _TRUE, _DONE, _US = (COL[name] for name in (
+    "fz_n", "fz_star_n", "file_torque_mnm", "motor_current_a", "motor_rpm", "depth_mm",
+    "true_depth_mm", "completeness", "compute_us"))
 
 
 @dataclass(slots=True)
@@ -90,18 +93,13 @@ class TickBlock:
         """Rows ``start`` to ``stop`` as dicts, each as the control task builds it."""
         out = []
         k, ts, step, state = self.k0 + start, self.ts, self.step, self.state
-        wl, rev, peul = self.working_length_mm, self.reversals, list(self.phantom_euler)
-        c = COL
-        fz_i, star_i, tau_i, cur_i = c["fz_n"], c["fz_star_n"], c["file_torque_mnm"], \
-            c["motor_current_a"]
-        rpm_i, d_i, td_i, cm_i, us_i = c["motor_rpm"], c["depth_mm"], c["true_depth_mm"], \
-            c["completeness"], c["compute_us"]
+        wl, rev, euler = self.working_length_mm, self.reversals, list(self.phantom_euler)
         for r in self.cols[start:stop].tolist():
             out.append(tick_row(
                 k * ts, k, step, state, r[_Q:_Q + 6], r[_QD:_QD + 6], r[_TOOL:_TOOL + 6],
-                [*r[_PH:_PH + 3], *peul], None, r[_WS:_WS + 6], r[_WH:_WH + 6], r[fz_i],
-                r[star_i], r[tau_i], r[cur_i], r[rpm_i], r[d_i], r[td_i], wl, r[cm_i], False,
-                rev, False, [], 0.0, r[us_i], False))
+                [*r[_PH:_PH + 3], *euler], None, r[_WS:_WS + 6], r[_WH:_WH + 6], r[_FZ],
+                r[_STAR], r[_TAU], r[_CUR], r[_RPM], r[_DEPTH], r[_TRUE], wl, r[_DONE],
+                False, rev, False, [], 0.0, r[_US], False))
             k += 1
         return out
 
