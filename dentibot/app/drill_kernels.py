@@ -58,13 +58,15 @@ FEEDING, RETRACTING, REVERSING = 0, 1, 2
 OUT_FIELDS = ("torque_abs_mnm", "true_depth_mm", "stalled", "pos_deg", "max_strain", "t",
               "est_torque_mnm")
 OUT_TORQUE_ABS, OUT_EST_TORQUE = 0, 6
-#: The last tick's estimate and commands (``last``): q (6), raw wrench (6), wrench_h (6),
-#: qdot (6), tip (3), axis (3), then the scalars of :data:`LAST_SCALARS`.
-LAST_Q, LAST_RAW, LAST_WH, LAST_QDOT, LAST_TIP, LAST_AXIS, LAST_SCALAR = 0, 6, 12, 18, 24, 27, 30
-LAST_SCALARS = ("force_norm_n", "file_torque_mnm", "motor_rpm", "motor_current_a",
-                "motor_pos_deg", "depth_mm", "fz_n", "fz_star_n")
+#: What the last tick's row lacks of its estimate and decision (``last``): the file's axis
+#: (3), then the scalars of :data:`LAST_SCALARS` (the decided fz before the orientation
+#: loop's scaling).
+LAST_AXIS, LAST_SCALAR = 0, 3
+LAST_SCALARS = ("force_norm_n", "motor_pos_deg", "fz_n")
 LAST_SIZE = LAST_SCALAR + len(LAST_SCALARS)
-#: Where each tick's telemetry numbers go in ``rows[i]`` (:data:`dentibot.telemetry.blocks.COL`)
+#: Where each tick's telemetry numbers go in ``rows[i]`` (:data:`dentibot.telemetry.blocks.COL`),
+#: written every tick (the last tick's row is also its estimate and commands); the tool's
+#: angles and the completeness only when ``truth`` asks for rows
 R_Q, R_QDOT, R_TOOL, R_PHANTOM = COL["q_deg"], COL["qdot_cmd_deg_s"], COL["tool_pose"], \
     COL["phantom_xyz"]
 R_WS, R_WH, R_FZ, R_FZ_STAR = COL["wrench_s"], COL["wrench_h"], COL["fz_n"], COL["fz_star_n"]
@@ -105,8 +107,11 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
     stepped after the last tick run too: the next tick is due at once. ``frames_out`` and
     ``jh_out`` get the last tick's chain.
 
-    ``truth``: whether to write each tick's telemetry numbers into ``rows[i]`` (the columns of
-    :data:`~dentibot.telemetry.blocks.COLUMNS` but the compute time), the tool's 6R_H, and
+    Each tick's telemetry numbers go into ``rows[i]`` (the columns of
+    :data:`~dentibot.telemetry.blocks.COLUMNS` but the compute time; the last tick's row is
+    also its estimate and commands, ``last`` what the row lacks of them). ``truth``: whether
+    rows are read (then the tool's angles and the completeness are written too), the tool's
+    6R_H, and
     what the canal's completeness (eq 6.1) takes: its initial lumen, stained widths, stain
     depth, a work buffer, the initial red area, the index of its lumen's version in the
     canal's state, and the completeness at the first tick. It is computed again only when the
@@ -231,32 +236,24 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
         out[i, 4] = cout[i_strain]
         out[i, 5] = t_w
         out[i, 6] = tau
+        r = rows[i]
         for j in range(6):
-            last[LAST_Q + j] = qr[j]
-            last[LAST_RAW + j] = raw[j]
-            last[LAST_WH + j] = wrench_h[j]
-            last[LAST_QDOT + j] = qdot[j]
+            r[R_Q + j] = qr[j]
+            r[R_QDOT + j] = qdot[j]
+            r[R_WS + j] = raw[j]
+            r[R_WH + j] = wrench_h[j]
         for j in range(3):
-            last[LAST_TIP + j] = tipax[3, j]
+            r[R_TOOL + j] = tipax[3, j]
+            r[R_PHANTOM + j] = o[j]
             last[LAST_AXIS + j] = tipax[2, j]
+        r[R_FZ] = feed
+        r[R_FZ_STAR] = fz_star if phase == FEEDING else feed
+        r[R_TAU], r[R_CUR], r[R_RPM], r[R_DEPTH] = tau, cur, rpm, depth
+        r[R_TRUE_DEPTH] = true_depth
         if row_on:
-            r = rows[i]
-            for j in range(6):
-                r[R_Q + j] = qr[j]
-                r[R_QDOT + j] = qdot[j]
-                r[R_WS + j] = raw[j]
-                r[R_WH + j] = wrench_h[j]
-            for j in range(3):
-                r[R_TOOL + j] = tipax[3, j]
-                r[R_PHANTOM + j] = o[j]
             r[R_TOOL + 3], r[R_TOOL + 4], r[R_TOOL + 5] = tool_euler_deg(frames, r_6_h)
-            r[R_FZ] = feed
-            r[R_FZ_STAR] = fz_star if phase == FEEDING else feed
-            r[R_TAU], r[R_CUR], r[R_RPM], r[R_DEPTH] = tau, cur, rpm, depth
-            r[R_TRUE_DEPTH], r[R_COMPLETENESS] = true_depth, completeness
-        s0 = LAST_SCALAR
-        last[s0], last[s0 + 1], last[s0 + 2], last[s0 + 3] = norm, tau, rpm, cur
-        last[s0 + 4], last[s0 + 5], last[s0 + 6], last[s0 + 7] = pos, depth, fz, fz_star
+            r[R_COMPLETENESS] = completeness
+        last[LAST_SCALAR], last[LAST_SCALAR + 1], last[LAST_SCALAR + 2] = norm, pos, fz
         last_frames, last_jh = frames, jh
         if i == n_max - 1:
             break

@@ -69,6 +69,12 @@ STATES = {FEEDING: dk.FEEDING, RETRACTING: dk.RETRACTING, REVERSING: dk.REVERSIN
 _STRAIN = 11            # the canal's outcome array: the file's largest bending strain
 
 
+#: The last tick's estimate and commands in its row
+_Q, _QDOT, _TIP, _WS, _WH = (COL[name] for name in (
+    "q_deg", "qdot_cmd_deg_s", "tool_pose", "wrench_s", "wrench_h"))
+_TAU, _CUR, _RPM, _DEPTH, _FZ_STAR = (COL[name] for name in (
+    "file_torque_mnm", "motor_current_a", "motor_rpm", "depth_mm", "fz_star_n"))
+
 #: What the kernel takes for the strategy and the torque rise outside feeding (unused).
 _NO_STRATEGY = make_strategy(StrategyParams(), 1.0, 0.002)
 _NO_RISE = TorqueRise()
@@ -244,19 +250,18 @@ class DrillLoop:
     def _after(self, rt, n: int, steps: int, code: int, k0: int, steps0: int,
                wall_s: float) -> None:
         """The Python side brought up to date after ``n`` ticks ran here."""
-        w, last, s0 = self.world, self.last, dk.LAST_SCALAR
-        scal = last[s0:].tolist()
-        q = last[dk.LAST_Q:dk.LAST_Q + 6].copy()
-        tip = tuple(last[dk.LAST_TIP:dk.LAST_TIP + 3].tolist())
-        axis = tuple(last[dk.LAST_AXIS:dk.LAST_AXIS + 3].tolist())
-        rt.last = Estimate(q, last[dk.LAST_RAW:dk.LAST_RAW + 6].copy(),
-                           last[dk.LAST_WH:dk.LAST_WH + 6].copy(), scal[0], scal[1], scal[2],
-                           scal[3], scal[4], tip, axis, scal[5])
+        w, last, row = self.world, self.last, self.rows[n - 1]
+        norm, pos, fz = last[dk.LAST_SCALAR:].tolist()
+        tau, cur, rpm, depth, fz_star = row[[_TAU, _CUR, _RPM, _DEPTH, _FZ_STAR]].tolist()
+        rt.last = Estimate(row[_Q:_Q + 6].copy(), row[_WS:_WS + 6].copy(),
+                           row[_WH:_WH + 6].copy(), norm, tau, rpm, cur, pos,
+                           tuple(row[_TIP:_TIP + 3].tolist()),
+                           tuple(last[dk.LAST_AXIS:dk.LAST_AXIS + 3].tolist()), depth)
         frames = self.frames.copy()
         rt.chain, rt.r_0_6 = (self.jh.copy(), frames), frames[5, :3].T
-        rt.qdot_cmd = last[dk.LAST_QDOT:dk.LAST_QDOT + 6].copy()
+        rt.qdot_cmd = row[_QDOT:_QDOT + 6].copy()
         if rt.treatment.state == FEEDING:
-            rt.ctx.decision, rt.ctx.decided = Decision(scal[6], scal[7]), k0 + n - 1
+            rt.ctx.decision, rt.ctx.decided = Decision(fz, fz_star), k0 + n - 1
         rt.ctx.pedal, rt.treatment.estop_active = bool(w.pedal), bool(w.estop)
         rt.ticks = k0 + n
         rt.stats.add_lockstep(n, wall_s)
