@@ -243,17 +243,15 @@ class ProtocolRunner:
 
     def _block(self, block: TickBlock) -> None:
         """A block of rows (the simulator's compiled drilling ticks): the same as
-        :meth:`_row` of each, the summary and the recorder taking the block whole."""
+        :meth:`_row` of each, the summary and the recorder taking the block whole (a run with
+        a tap has no blocks: its ticks stay in the control task)."""
         if self._live_summary:
             self.acc.add_block(block)
         if self.recorder is not None:
             self.recorder.record_block(block)
-        if self.live is not None or self._tap is not None:
+        if self.live is not None:
             for row in block.rows():
-                if self.live is not None:
-                    self.live.record(row)
-                if self._tap is not None:
-                    self._tap(row)
+                self.live.record(row)
         if self.progress is not None:
             every, k0 = self.progress_every, block.k0
             for k in range(k0 + -k0 % every, k0 + len(block), every):
