@@ -15,6 +15,13 @@
    :class:`DeadlineStats` histogram bounds; stream losses (F/T sequence gaps, unanswered
    EPOS4 SYNCs, arm cycles without joints); CPU of both processes.
 4. Beside it, the same loop paced by plain ``asyncio.sleep(period)`` (``--sleep-seconds``).
+5. The platform's floor (``--floor-seconds``, default ``--seconds``): a bare loop in a process
+   of its own, with the same clock and the same raised priority under the same load, that does
+   nothing but wake at each deadline (no devices, no other thread, nothing to compute). What it
+   misses, the machine missed: on a virtual machine the guest's vCPU is paused now and then by
+   the host, and no priority inside the guest can win those milliseconds back. Its lateness
+   and overruns (same definition: lateness + compute > period) bound what any loop can
+   achieve here; the control loop's figures are read against them.
 
 ``--load N`` runs N CPU-bound jobs (busy Python processes at the ordinary priority) for the
 whole measurement: the machine as it is when something else runs beside the robot. The control
@@ -52,8 +59,10 @@ from dentibot.runtime.actuate import recover_all
 from dentibot.runtime.clock import (
     REALTIME_FIFO_PRIORITY,
     Clock,
+    DeadlineStats,
     RealTimeClock,
     raised_priority,
+    realtime_policy,
 )
 from dentibot.runtime.config import RuntimeConfig, Thresholds
 from dentibot.sim.world import World, WorldConfig
@@ -239,6 +248,39 @@ def _load_jobs(n: int) -> list[subprocess.Popen]:
     return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
 
 
+async def _bare_loop(rate: float, seconds: float) -> dict:
+    """A loop that only waits for its deadlines: :class:`RealTimeClock` at ``rate``, under
+    the control loop's policy, for ``seconds``; its :class:`DeadlineStats` and exact lateness
+    quantiles."""
+    clock = RealTimeClock(1.0 / rate)
+    stats = DeadlineStats(clock.period_s)
+    late: list[float] = []
+    ticks = max(1, round(seconds * rate))
+    with realtime_policy(clock) as collect:
+        clock.start()
+        for k in range(ticks):
+            lateness = await clock.wait_next()
+            t0 = time.perf_counter()
+            late.append(lateness * 1e6)
+            stats.add(lateness, time.perf_counter() - t0)
+            collect(k)                               # in the slack, as the control loop
+        stats.skipped = clock.skipped
+        granted = _priority_granted(clock)
+    s = stats.as_dict()
+    s["lateness_us_exact"] = quantiles(late)
+    s["priority_raised"] = granted
+    return s
+
+
+def platform_floor(rate: float, seconds: float) -> dict:
+    """:func:`_bare_loop` in a fresh process (so that no thread of this one shares its
+    interpreter lock), its figures read back."""
+    out = subprocess.run([sys.executable, __file__, "--floor", f"{rate!r}", f"{seconds!r}"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=seconds + 60,
+                         check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
 def _priority_granted(clock: RealTimeClock) -> str:
     """How the control loop's priority is raised here: "fifo", "nice" or "" (not at all)."""
     with raised_priority(fifo_priority=REALTIME_FIFO_PRIORITY if clock.kernel_timer
@@ -247,7 +289,8 @@ def _priority_granted(clock: RealTimeClock) -> str:
 
 
 async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float = 10.0,
-                     round_trip_n: int = 20, load: int = 0) -> dict:
+                     round_trip_n: int = 20, load: int = 0,
+                     floor_seconds: float | None = None) -> dict:
     ports = {"meca": free_port(), "http": free_port(), "modbus": free_port(),
              "can": free_port(), "netft": free_port(socket.SOCK_DGRAM)}
     serve = _serve(ports)  # started once, before any timing
@@ -274,6 +317,11 @@ async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float
                 if sleep_seconds > 0:
                     result["rates"][f"{rate:g}"]["plain_asyncio_sleep"] = await control_loop(
                         d, world, SleepClock(1.0 / rate), sleep_seconds)
+        floor_s = seconds if floor_seconds is None else floor_seconds
+        for rate in rates:                           # the devices closed, the load still on
+            if floor_s > 0:
+                result["rates"][f"{rate:g}"]["platform_floor"] = await asyncio.to_thread(
+                    platform_floor, rate, floor_s)
         return result
     finally:
         for job in jobs:
@@ -284,21 +332,29 @@ async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float
 
 
 def measure(seconds: float = 60.0, rates=(500.0, 1000.0), sleep_seconds: float = 10.0,
-            round_trip_n: int = 20, load: int = 0) -> dict:
-    """Round trips, then each rate with absolute deadlines, then each with plain sleep, with
-    ``load`` CPU-bound jobs running throughout."""
-    return asyncio.run(main_async(seconds, rates, sleep_seconds, round_trip_n, load))
+            round_trip_n: int = 20, load: int = 0, floor_seconds: float | None = None) -> dict:
+    """Round trips, then each rate with absolute deadlines, then each with plain sleep, then
+    each rate's platform floor (``floor_seconds``, default ``seconds``), with ``load``
+    CPU-bound jobs running throughout."""
+    return asyncio.run(main_async(seconds, rates, sleep_seconds, round_trip_n, load,
+                                  floor_seconds))
 
 
 def print_report(r: dict) -> None:
     print(f"{r['load_jobs']} CPU-bound job(s) beside it; control loop priority: "
           f"{r['priority_raised'] or 'NOT raised (not permitted)'}")
     for rate, res in r["rates"].items():
-        for name in ("absolute_deadlines", "plain_asyncio_sleep"):
+        for name in ("absolute_deadlines", "plain_asyncio_sleep", "platform_floor"):
             s = res.get(name)
             if s is None:
                 continue
             ex = s["lateness_us_exact"]
+            if name == "platform_floor":
+                print(f"{rate:>5} Hz {name:>19}: ticks {s['ticks']}, lateness p50 "
+                      f"{fmt(ex['p50'], '.0f')} us, p99 {fmt(ex['p99'], '.0f')} us, max "
+                      f"{fmt(ex['max'], '.0f')} us, overruns {s['overruns']}, skipped "
+                      f"{s['skipped']} (a bare loop, priority {s['priority_raised'] or 'not raised'})")
+                continue
             st = s["streams"]
             print(f"{rate:>5} Hz {name:>19}: ticks {s['ticks']}, lateness p50 "
                   f"{fmt(ex['p50'], '.0f')} us, p99 {fmt(ex['p99'], '.0f')} us, max "
@@ -323,13 +379,21 @@ def main() -> None:
     ap.add_argument("--sleep-seconds", type=float, default=None,
                     help="plain asyncio.sleep loop length (default: min(seconds, 10))")
     ap.add_argument("--load", type=int, default=0, help="CPU-bound jobs running beside it")
+    ap.add_argument("--floor-seconds", type=float, default=None,
+                    help="the bare loop's length (default: --seconds; 0: none)")
     ap.add_argument("--json", help="write the figures to this file")
+    ap.add_argument("--floor", nargs=2, type=float, metavar=("RATE", "SECONDS"),
+                    help=argparse.SUPPRESS)         # the bare loop's own process
     args = ap.parse_args()
+    if args.floor:
+        print(json.dumps(asyncio.run(_bare_loop(*args.floor))))
+        return
     structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.ERROR))
     # python-can: "Got incomplete message" on each TCP read that splits a frame (under load)
     logging.getLogger("can.interfaces.socketcand").setLevel(logging.ERROR)
     sleep_s = min(args.seconds, 10.0) if args.sleep_seconds is None else args.sleep_seconds
-    r = measure(args.seconds, args.rates or [args.rate], sleep_s, load=args.load)
+    r = measure(args.seconds, args.rates or [args.rate], sleep_s, load=args.load,
+                floor_seconds=args.floor_seconds)
     print_report(r)
     if args.json:
         Path(args.json).write_text(json.dumps(r, indent=2))

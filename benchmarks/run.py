@@ -47,7 +47,10 @@ Key figures of ``--json`` (all measured in the same run):
 - ``lateness_us_p99_500hz``, ``sleep_lateness_us_p99_500hz``, ``overruns_500hz``: 500 Hz on
   the wire with ``realtime_load_jobs`` CPU-bound jobs beside it, with absolute deadlines and
   with plain ``asyncio.sleep``; ``realtime_priority_raised``: how the loop's priority was
-  raised (``fifo``, ``nice`` or empty).
+  raised (``fifo``, ``nice`` or empty); ``platform_lateness_us_p99_500hz``,
+  ``platform_overruns_500hz``: the platform's floor, a bare loop with the same clock and
+  priority under the same load that only waits for its deadlines (in its own process): what
+  the machine itself misses, which no control loop on it can do better than.
 """
 
 from __future__ import annotations
@@ -100,6 +103,7 @@ class Sizes:
     recording_rows: int = 15000
     realtime_s: float = 60.0
     sleep_s: float = 10.0
+    floor_s: float | None = None    # the bare loop's length (None: realtime_s)
     round_trips: int = 20
     rates: tuple[float, ...] = (500.0, 1000.0)
     realtime_load: int = 1          # CPU-bound jobs beside the real-time loop
@@ -154,7 +158,8 @@ def collect(sizes: Sizes = FULL, sections=SECTIONS, profile: bool = False,
             f"each, plain sleep {sizes.sleep_s:g} s each, wire simulators in another process, "
             f"{sizes.realtime_load} CPU-bound job(s) beside them)")
         res["realtime"] = realtime_loop.measure(sizes.realtime_s, sizes.rates, sizes.sleep_s,
-                                                sizes.round_trips, load=sizes.realtime_load)
+                                                sizes.round_trips, load=sizes.realtime_load,
+                                                floor_seconds=sizes.floor_s)
     res["elapsed_s"] = time.perf_counter() - t0
     res["load_average_after"] = load_average()
     return res
@@ -228,6 +233,11 @@ def flatten(res: dict) -> dict:
         out["realtime_priority_raised"] = rt["priority_raised"]
         for rate, r in rt["rates"].items():
             hz = _hz(rate)
+            floor = r.get("platform_floor")
+            if floor is not None:
+                out[f"platform_lateness_us_p99_{hz}"] = floor["lateness_us_exact"]["p99"]
+                out[f"platform_lateness_us_max_{hz}"] = floor["lateness_us_exact"]["max"]
+                out[f"platform_overruns_{hz}"] = floor["overruns"]
             for prefix, name in (("", "absolute_deadlines"), ("sleep_", "plain_asyncio_sleep")):
                 s = r.get(name)
                 if s is None:
@@ -363,6 +373,14 @@ def print_table(res: dict, flat: dict) -> None:
                          ("met" if all(flat["targets_met"].get(k, False) for k in
                                        ("lateness_us_p99_500hz", "overruns_500hz"))
                           else "NOT met") if is500 else ""))
+            fl = r.get("platform_floor")
+            if fl is not None:
+                e3 = fl["lateness_us_exact"]
+                rows.append((f"  platform floor at {float(rate):g} Hz: a bare loop, same "
+                             f"clock, priority and load", "",
+                             (f"{fmt(e3['p50'], '.0f')}/{fmt(e3['p99'], '.0f')}/"
+                              f"{fmt(e3['max'], '.0f')} us, {fl['overruns']} overruns"),
+                             "what the machine itself misses", ""))
             if s["state"] == "fault":
                 rows.append((f"  {float(rate):g} Hz loop ended in fault", "", "fault",
                              "; ".join(s["faults"])[:160], ""))

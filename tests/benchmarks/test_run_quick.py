@@ -18,7 +18,8 @@ import pytest
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
 
 TINY = {"tick_n": 200, "world_n": 200, "lockstep_s": 1.0, "recording_rows": 200,
-        "realtime_s": 1.0, "sleep_s": 0.5, "round_trips": 2, "rates": (500.0,),
+        "realtime_s": 1.0, "sleep_s": 0.5, "floor_s": 0.5, "round_trips": 2,
+        "rates": (500.0,),
         "profile_s": 0.5, "population_n": 2, "population_round_s": 1.0,
         "population_workers": 1,
         # no CPU-bound job beside the real-time loop here: the suite's wire tests may be
@@ -33,7 +34,8 @@ BASELINES = ("tick_numpy_dh_us_median", "tick_numpy_dh_ratio", "tick_rtb_us_medi
              "jacobian_solve_numpy_dh_us_median", "lockstep_us_per_tick",
              "lockstep_speed_factor", "lockstep_core_speed_factor_rows",
              "lockstep_core_speed_factor_recorder",
-             "sleep_lateness_us_p99_500hz", "sleep_overruns_500hz", "recording_ticks_per_s",
+             "sleep_lateness_us_p99_500hz", "sleep_overruns_500hz",
+             "platform_lateness_us_p99_500hz", "platform_overruns_500hz", "recording_ticks_per_s",
              "recording_mb_per_min", "roundtrip_ms_median_arm", "ft_lost_500hz",
              "population_over_single")
 
@@ -120,10 +122,12 @@ def test_recording_counts_and_size_per_minute(results):
 def test_realtime_tick_counts_and_lateness_order(results):
     _, res, flat = results
     r = res["realtime"]["rates"]["500"]
-    s, sl = r["absolute_deadlines"], r["plain_asyncio_sleep"]
+    s, sl, fl = r["absolute_deadlines"], r["plain_asyncio_sleep"], r["platform_floor"]
     assert s["ticks"] == round(TINY["realtime_s"] * 500)
     assert sl["ticks"] == round(TINY["sleep_s"] * 500)
-    for stats in (s, sl):
+    assert fl["ticks"] == round(TINY["floor_s"] * 500)
+    assert flat["platform_overruns_500hz"] == fl["overruns"] <= fl["ticks"]
+    for stats in (s, sl, fl):
         ex = stats["lateness_us_exact"]
         assert 0.0 <= ex["p50"] <= ex["p99"] <= ex["max"]
         assert sum(stats["histogram_us"].values()) == stats["ticks"]

@@ -116,3 +116,42 @@ def test_the_other_threads_are_raised_with_the_loop_and_restored():
         assert inside == REALTIME_NICE
     else:
         assert inside == before
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task")
+                    or not hasattr(os, "sched_setscheduler"), reason="no per-thread policies")
+def test_under_a_real_time_loop_the_other_threads_share_its_policy_and_get_theirs_back():
+    """With the loop at SCHED_FIFO, a receiver thread runs at the loop's own real-time
+    priority while the loop runs (nothing of lower priority can then preempt it while it
+    holds the interpreter lock), and at its own policy before and after."""
+    import threading
+
+    from dentibot.runtime.clock import others_raised
+
+    ready, done = threading.Event(), threading.Event()
+    tid: list[int] = []
+
+    def receiver() -> None:
+        tid.append(threading.get_native_id())
+        ready.set()
+        done.wait(5.0)
+
+    t = threading.Thread(target=receiver, daemon=True)
+    t.start()
+    ready.wait(5.0)
+    before = os.sched_getscheduler(tid[0]), os.sched_getparam(tid[0]).sched_priority
+    me_before = os.sched_getscheduler(0)
+    try:
+        with others_raised(fifo_priority=REALTIME_FIFO_PRIORITY):
+            inside = os.sched_getscheduler(tid[0]), os.sched_getparam(tid[0]).sched_priority
+            me_inside = os.sched_getscheduler(0)
+        after = os.sched_getscheduler(tid[0]), os.sched_getparam(tid[0]).sched_priority
+    finally:
+        done.set()
+        t.join(5.0)
+    assert after == before and me_inside == me_before
+    if _may_fifo():
+        reset = getattr(os, "SCHED_RESET_ON_FORK", 0)
+        assert inside == (os.SCHED_FIFO | reset, REALTIME_FIFO_PRIORITY)
+    else:                                     # refused: the nice value instead, or nothing
+        assert inside[0] == before[0]
