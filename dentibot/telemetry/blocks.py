@@ -17,6 +17,9 @@ from typing import Any
 
 import numpy as np
 
+from dentibot.telemetry.cdr import BlockEncoder
+from dentibot.telemetry.schema import TICK_FIELDS
+
 __all__ = ["COL", "COLUMNS", "WIDTH", "TickBlock", "tick_row"]
 
 
@@ -54,6 +57,7 @@ COLUMNS: tuple[tuple[str, int], ...] = (
 )
 #: each column's first index in a block's row
 COL: dict[str, int] = {}
+_WIDTHS = dict(COLUMNS)
 WIDTH = 0
 for _name, _width in COLUMNS:
     COL[_name], WIDTH = WIDTH, WIDTH + _width
@@ -64,6 +68,32 @@ _WS, _WH = COL["wrench_s"], COL["wrench_h"]
 _FZ, _STAR, _TAU, _CUR, _RPM, _DEPTH, _TRUE, _DONE, _US = (COL[name] for name in (
     "fz_n", "fz_star_n", "file_torque_mnm", "motor_current_a", "motor_rpm", "depth_mm",
     "true_depth_mm", "completeness", "compute_us"))
+#: a row's fields that a block's columns fill whole (the rest: t, tick, phantom_pose's
+#: position, f_d's fz, and what the block's rows share)
+_FILLED = ("q_deg", "qdot_cmd_deg_s", "tool_pose", "wrench_s", "wrench_h", "fz_star_n",
+           "fz_n", "file_torque_mnm", "motor_current_a", "motor_rpm", "depth_mm",
+           "true_depth_mm", "completeness", "compute_us")
+
+
+class _TickTemplate:
+    """A block's ``/tick`` template and where its columns go: ``buf[:, slots] =
+    cols[:, cols]``."""
+
+    __slots__ = ("cols", "enc", "slots", "t", "tick")
+
+    def __init__(self, row: dict[str, Any]) -> None:
+        self.enc = enc = BlockEncoder(TICK_FIELDS, row)
+        pairs = [(enc.slot("phantom_pose", i), COL["phantom_xyz"] + i) for i in range(3)]
+        pairs.append((enc.slot("f_d", 2), COL["fz_n"]))
+        for name in _FILLED:
+            pairs += [(enc.slot(name, i), COL[name] + i) for i in range(_WIDTHS[name])]
+        self.slots = np.array([s for s, _ in pairs], dtype=np.intp)
+        self.cols = np.array([c for _, c in pairs], dtype=np.intp)
+        self.t, self.tick = enc.slot("t"), enc.slot("tick")
+
+
+#: /tick message templates by what a block's rows share (a few per run)
+_TEMPLATES: dict[tuple, _TickTemplate] = {}
 
 
 @dataclass(slots=True)
@@ -102,6 +132,28 @@ class TickBlock:
                 False, rev, False, [], 0.0, r[_US], False))
             k += 1
         return out
+
+    def tick_cdr(self, start: int = 0, stop: int | None = None) -> list[bytes]:
+        """The ``/tick`` messages (CDR) of rows ``start`` to ``stop``: the bytes of
+        ``Codec(TICK_FIELDS).encode(row)`` for each row of :meth:`rows`, written by copying
+        the block's columns into a template of the rows' shared values."""
+        cols = self.cols[start:stop]
+        n = cols.shape[0]
+        if n == 0:
+            return []
+        key = (self.step, self.state, self.working_length_mm, self.reversals,
+               self.phantom_euler)
+        tpl = _TEMPLATES.get(key)
+        if tpl is None:
+            if len(_TEMPLATES) > 64:
+                _TEMPLATES.clear()
+            tpl = _TEMPLATES[key] = _TickTemplate(self.rows(start, start + 1)[0])
+        ticks = np.arange(self.k0 + start, self.k0 + start + n, dtype=np.int64)
+        buf = tpl.enc.buffer(n)
+        buf[:, tpl.slots] = cols[:, tpl.cols]
+        buf[:, tpl.t] = ticks * self.ts                  # t = k ts, as the rows compute it
+        buf.view(np.int64)[:, tpl.tick] = ticks
+        return tpl.enc.messages(buf)
 
     def part(self, start: int, stop: int) -> TickBlock:
         """Ticks ``start`` to ``stop`` of the block, as a block."""

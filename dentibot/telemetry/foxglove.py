@@ -1,4 +1,4 @@
-"""What a tick looks like in Foxglove's 3D panel: frame transforms and a scene, as JSON.
+"""What a tick looks like in Foxglove's 3D panel: frame transforms and a scene.
 
 A telemetry row carries the file-tip pose (``tool_pose``), the phantom pose when it is known
 (``phantom_pose``) and the wrench in the tool frame (``wrench_h``). :class:`FoxgloveView` turns
@@ -6,11 +6,13 @@ one row into two of Foxglove's well-known message types, so that a recording (an
 view) shows the handpiece, the file, the tooth and the force in 3D without any layout or
 plug-in:
 
-``/tf`` (``foxglove.FrameTransforms``, every tick)
+``/tf`` (every tick: ``tf2_msgs/msg/TFMessage`` in CDR in a recording,
+:meth:`FoxgloveView.transforms_cdr`; ``foxglove.FrameTransforms`` in JSON in the live view,
+:meth:`FoxgloveView.transforms_json`)
     The tree ``base`` -> ``flange`` -> ``file_tip``, ``base`` -> ``tooth`` (the simulator's
     phantom) and ``base`` -> ``tooth_tracked`` (the patient tracker's). One message per
-    tick holds all of the tick's ``foxglove.FrameTransform`` entries: one MCAP record instead
-    of one per frame, which is what the writer thread pays for (see docs/recordings.md).
+    tick holds all of the tick's transforms: one MCAP record instead of one per frame, which
+    is what the writer pays for (see docs/recordings.md).
     Without the tool geometry (``tool_6_h``) the flange cannot be placed from the row alone
     and the tree is ``base`` -> ``file_tip``.
 ``/scene`` (``foxglove.SceneUpdate``, decimated to ``scene_hz`` of procedure time)
@@ -47,9 +49,18 @@ import math
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
+import numpy as np
 import orjson
 
 from dentibot.errors import ConfigError
+from dentibot.telemetry.quaternion_kernels import (
+    fill_tool_frames,
+    flange_of_tip,
+    qconj,
+    qrotate,
+)
+from dentibot.telemetry.quaternion_kernels import quat_from_euler_xyz_deg as _quat_euler
+from dentibot.telemetry.tf_cdr import tf_encoder
 
 __all__ = [
     "FOXGLOVE_TOPICS",
@@ -264,16 +275,9 @@ Vec = tuple[float, float, float]
 
 def quat_from_euler_xyz_deg(alpha: float, beta: float, gamma: float) -> Quat:
     """Unit quaternion (x, y, z, w) of ``R = Rx(alpha) Ry(beta) Rz(gamma)`` (mobile XYZ Euler
-    angles in degrees, the convention of the rows' poses): the product of the three axis
-    quaternions, written out (this runs for every pose of every tick)."""
-    ha, hb, hg = (math.radians(alpha) * 0.5, math.radians(beta) * 0.5,
-                  math.radians(gamma) * 0.5)
-    ca, sa = math.cos(ha), math.sin(ha)
-    cb, sb = math.cos(hb), math.sin(hb)
-    cg, sg = math.cos(hg), math.sin(hg)
-    # qx(a) * qy(b) = (sa cb, ca sb, sa sb, ca cb); then * qz(g)
-    x1, y1, z1, w1 = sa * cb, ca * sb, sa * sb, ca * cb
-    return (x1 * cg + y1 * sg, y1 * cg - x1 * sg, z1 * cg + w1 * sg, w1 * cg - z1 * sg)
+    angles in degrees, the convention of the rows' poses)
+    (:func:`~dentibot.telemetry.quaternion_kernels.quat_from_euler_xyz_deg`)."""
+    return _quat_euler(float(alpha), float(beta), float(gamma))
 
 
 def quat_from_matrix(m: Any) -> Quat:
@@ -300,28 +304,6 @@ def quat_from_matrix(m: Any) -> Quat:
     if q[3] < 0.0:                                 # one of the two: w >= 0
         n = -n
     return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
-
-
-def _qmul(a: Quat, b: Quat) -> Quat:
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return (aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz)
-
-
-def _qconj(q: Quat) -> Quat:
-    return (-q[0], -q[1], -q[2], q[3])
-
-
-def _qrotate(q: Quat, v: Vec) -> Vec:
-    """``v`` rotated by the unit quaternion ``q``: v + 2 w (u x v) + 2 u x (u x v)."""
-    x, y, z, w = q
-    vx, vy, vz = v
-    tx, ty, tz = 2.0 * (y * vz - z * vy), 2.0 * (z * vx - x * vz), 2.0 * (x * vy - y * vx)
-    return (vx + w * tx + y * tz - z * ty, vy + w * ty + z * tx - x * tz,
-            vz + w * tz + x * ty - y * tx)
 
 
 def _arrow_quat(d: Vec) -> Quat:
@@ -448,7 +430,7 @@ class FoxgloveView:
             behind = 60.0
             if self._tool is not None:            # flange origin in {H}: -R^T p (on -z)
                 q, p = self._tool
-                behind = _qrotate(_qconj(q), p)[2] - file_len
+                behind = qrotate(qconj(q), p)[2] - file_len
             handpiece_length_mm = behind if behind > 1.0 else 60.0
         hp_len = _positive("handpiece_length_mm", handpiece_length_mm)
         hp_d = _positive("handpiece_diameter_mm", handpiece_diameter_mm)
@@ -521,20 +503,57 @@ class FoxgloveView:
             parts.append(stamped + text)
         return ('{"transforms":[' + ",".join(parts) + "]}").encode()
 
+    def transforms_cdr(self, row: dict[str, Any], log_ns: int) -> bytes | None:
+        """The ``tf2_msgs/msg/TFMessage`` (CDR) of ``row`` at ``log_ns``: the frames of
+        :meth:`transforms_json`, in full precision; None when the row places no frame."""
+        frames = self._frames(row)
+        if not frames:
+            return None
+        return tf_encoder([(parent, child) for parent, child, _p, _q in frames]).encode(
+            log_ns, [(p[0] * _MM, p[1] * _MM, p[2] * _MM, *q) for _a, _b, p, q in frames])
+
+    def block_transforms_cdr(self, tool: Any, phantom_xyz: Any,
+                             phantom_euler: Sequence[float], log_ns: Any) -> list[bytes] | None:
+        """:meth:`transforms_cdr` of ``n`` rows at once, bit for bit: their tool poses
+        (n x 6), the phantom's positions (n x 3) and its one orientation. None if a row's
+        frames would not be the others' (a pose with a non-finite number) or the caller adds
+        frames of its own: then each row goes through :meth:`transforms_cdr`."""
+        tool = np.asarray(tool, dtype=float)
+        phantom_xyz = np.asarray(phantom_xyz, dtype=float)
+        if self.frames is not None or not (np.isfinite(tool).all()
+                                           and np.isfinite(phantom_xyz).all()
+                                           and all(map(math.isfinite, phantom_euler))):
+            return None
+        if self._tool is None:
+            names = [(BASE, FILE_TIP), (BASE, TOOTH)]
+            q_6h, p_6h = (0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0)
+        else:
+            names = [(BASE, FLANGE), (FLANGE, FILE_TIP), (BASE, TOOTH)]
+            q_6h, p_6h = self._tool
+        enc = tf_encoder(names)
+        buf = enc.buffer(log_ns)
+        fill_tool_frames(buf, np.ascontiguousarray(tool), q_6h, p_6h,
+                            self._tool is not None, enc.word(0))
+        if self._tool is not None:                 # the tip in the flange: the geometry
+            buf[:, enc.word(1):enc.word(1) + 7] = (p_6h[0] * _MM, p_6h[1] * _MM,
+                                                   p_6h[2] * _MM, *q_6h)
+        tooth = enc.word(len(names) - 1)
+        buf[:, tooth:tooth + 3] = phantom_xyz * _MM
+        buf[:, tooth + 3:tooth + 7] = quat_from_euler_xyz_deg(*phantom_euler)
+        return enc.messages(buf)
+
     def _frames(self, row: dict[str, Any]) -> list[tuple[str, str, Sequence[float], Quat]]:
         """The frames ``row`` places: (parent, child, position in mm, rotation)."""
         out: dict[str, tuple[str, str, Sequence[float], Quat]] = {}      # by child frame
         tip = _pose6(row.get("tool_pose"))
         if tip is not None:
             q_0h = quat_from_euler_xyz_deg(tip[3], tip[4], tip[5])
-            p_0h = tip[:3]
+            p_0h = (float(tip[0]), float(tip[1]), float(tip[2]))
             if self._tool is None:
                 out[FILE_TIP] = (BASE, FILE_TIP, p_0h, q_0h)
             else:
                 q_6h, p_6h = self._tool               # 0T_6 = 0T_H (6T_H)^-1
-                q_06 = _qmul(q_0h, _qconj(q_6h))
-                r = _qrotate(q_06, p_6h)
-                p_06 = (p_0h[0] - r[0], p_0h[1] - r[1], p_0h[2] - r[2])
+                p_06, q_06 = flange_of_tip(p_0h, q_0h, q_6h, p_6h)
                 out[FLANGE] = (BASE, FLANGE, p_06, q_06)
                 out[FILE_TIP] = (FLANGE, FILE_TIP, p_6h, q_6h)
         tooth = _pose6(row.get("phantom_pose"))

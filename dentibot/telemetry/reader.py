@@ -38,6 +38,8 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import MCAP0_MAGIC
 
 from dentibot.errors import ConfigError
+from dentibot.telemetry.cdr import MESSAGE_ENCODING as CDR_ENCODING
+from dentibot.telemetry.cdr import TICK_CODEC, CdrError
 from dentibot.telemetry.schema import (
     EVENT_FIELDS,
     TICK_FIELDS,
@@ -158,6 +160,7 @@ class MessageStream:
         with f:
             size = os.fstat(f.fileno()).st_size
             topics: dict[int, str] = {}
+            cdr_channels: set[int] = set()
             footer: Footer | None = None
             try:
                 for record in StreamReader(f, validate_crcs=True,
@@ -165,11 +168,14 @@ class MessageStream:
                     if isinstance(record, Message):
                         topic = topics.get(record.channel_id, "")
                         if topic in TOPIC_NAMES:
-                            obj = self._decode(topic, record)
+                            obj = self._decode(topic, record,
+                                               record.channel_id in cdr_channels)
                             if obj is not _BAD:
                                 yield topic, obj
                     elif isinstance(record, Channel):
                         topics[record.id] = record.topic
+                        if record.message_encoding == CDR_ENCODING:
+                            cdr_channels.add(record.id)
                     elif isinstance(record, Metadata) and record.name == RECOVERY_METADATA_NAME:
                         self.recovered = dict(record.metadata)
                     elif isinstance(record, Footer):
@@ -187,7 +193,14 @@ class MessageStream:
             log.warning("telemetry.read_incomplete", path=str(self.path),
                         problems=self.problems[:3])
 
-    def _decode(self, topic: str, msg: Message) -> Any:
+    def _decode(self, topic: str, msg: Message, cdr: bool = False) -> Any:
+        if cdr:                                # /tick, binary (older recordings: JSON)
+            try:
+                return TICK_CODEC.decode(msg.data) if topic == "/tick" else _BAD
+            except CdrError as exc:
+                self.problems.append(f"{topic} message at log time {msg.log_time} ns: "
+                                     f"bad CDR ({exc})")
+                return _BAD
         try:
             obj = json.loads(msg.data)
         except (UnicodeDecodeError, json.JSONDecodeError) as exc:

@@ -40,6 +40,7 @@ from mcap.records import (
 from mcap.stream_reader import StreamReader
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
+from dentibot.telemetry.cdr import CDR_LE, TICK_CODEC, CdrError
 from dentibot.telemetry.reader import RECOVERY_METADATA_NAME
 from dentibot.telemetry.schema import TelemetryError
 
@@ -224,8 +225,11 @@ def _scan(f, src: Path) -> tuple[RecoveryResult, int]:
 
 def _tick_of(data: bytes) -> int | None:
     try:
-        tick = orjson.loads(data).get("tick")
-    except (orjson.JSONDecodeError, AttributeError):
+        if data[:4] == CDR_LE:                     # a binary /tick (older recordings: JSON)
+            tick = TICK_CODEC.decode(data)["tick"]
+        else:
+            tick = orjson.loads(data).get("tick")
+    except (orjson.JSONDecodeError, AttributeError, CdrError):
         return None
     return tick if isinstance(tick, int) and not isinstance(tick, bool) else None
 

@@ -5,8 +5,9 @@ One control tick = one row, a JSON-serialisable dict. The fields are defined onc
 (:func:`json_schema`), the row check (:func:`validate_row`) and a row of defaults
 (:func:`default_row`) are derived from that table, never written out by hand.
 
-Channels of a recording (one MCAP channel per topic, ``json`` message encoding, ``jsonschema``
-schemas, so the file opens in Foxglove):
+Channels of a recording (one MCAP channel per topic, so the file opens in Foxglove;
+``/tick`` in CDR with a ROS 2 definition derived from :data:`TICK_FIELDS`
+(:mod:`dentibot.telemetry.cdr`), the others ``json`` with ``jsonschema`` schemas):
 
 ==============  ==================================================================
 ``/run``        once at the start: protocol, seed, rate_hz, devices, dentibot_version,
@@ -16,10 +17,11 @@ schemas, so the file opens in Foxglove):
 ``/run/end``    once at the end: ``{status, reason, duration_s}``
 ==============  ==================================================================
 
-(The 3D topics ``/tf`` and ``/scene`` use Foxglove's own schemas:
-:mod:`dentibot.telemetry.foxglove`.)
+(The 3D topics: ``/tf`` is ROS 2's ``tf2_msgs/msg/TFMessage`` in CDR, ``/scene`` Foxglove's
+own schema: :mod:`dentibot.telemetry.foxglove`.)
 
-Unknown values are left out, never written as ``null``. Foxglove's and Lichtblick's JSON-schema
+In CDR an unknown number is NaN and an unknown pose an empty sequence. In the JSON messages
+(and the live view's) unknown values are left out, never written as ``null``. Foxglove's and Lichtblick's JSON-schema
 parser accepts exactly one ``type`` per property (``"type": ["number", "null"]`` makes the whole
 channel unreadable there), so a nullable field is declared with its own type only and is not
 ``required``; a message leaves the field out when its value is None (unknown, e.g. the phantom

@@ -106,9 +106,11 @@ def _recorded(tmp_path, compiled: bool, monkeypatch) -> tuple:
     (each /tick without its compute time) and how many ticks went over in blocks."""
     import orjson
     from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
 
     from dentibot.app.runner import ProtocolRunner
     from dentibot.protocol.loader import load_protocol
+    from dentibot.telemetry.cdr import TICK_CODEC
 
     in_blocks = []
     block = ProtocolRunner._block
@@ -122,9 +124,21 @@ def _recorded(tmp_path, compiled: bool, monkeypatch) -> tuple:
                             compiled_ticks=compiled)
     result = asyncio.run(runner.run())
     messages = []                  # after /run, at their log time from the run's start
+    ros2, start = DecoderFactory(), 0
     with open(path, "rb") as f:
+        schemas = make_reader(f).get_summary().schemas
         for _, channel, message in make_reader(f).iter_messages():
-            obj = orjson.loads(message.data)
+            if channel.topic == "/tick":
+                obj = TICK_CODEC.decode(message.data)
+            elif channel.message_encoding == "cdr":          # /tf, by Foxglove's codec
+                tf = ros2.decoder_for("cdr", schemas[channel.schema_id])(message.data)
+                obj = [(t.header.frame_id, t.child_frame_id,
+                        t.header.stamp.sec * 1_000_000_000 + t.header.stamp.nanosec - start,
+                        *(getattr(t.transform.translation, a) for a in "xyz"),
+                        *(getattr(t.transform.rotation, a) for a in "xyzw"))
+                       for t in tf.transforms]
+            else:
+                obj = orjson.loads(message.data)
             if channel.topic == "/run":
                 start = message.log_time
                 continue

@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import io
+import json
 import math
 import threading
+
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
 
 from dentibot.telemetry import default_row
 
@@ -91,3 +95,23 @@ class GatedStream(io.BytesIO):
         if self.fail_with is not None:
             raise self.fail_with
         return super().write(data)
+
+
+def decoded_messages(path, topics=None) -> list[tuple[str, object]]:
+    """A recording's messages as a viewer decodes them: (topic, message), JSON channels by
+    ``json.loads``, CDR channels (``/tick``) by Foxglove's own ROS 2 codec (an object with
+    the fields as attributes, arrays as sequences)."""
+    ros2 = DecoderFactory()
+    out = []
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        schemas = reader.get_summary().schemas
+        decoders: dict[int, object] = {}
+        for _s, c, m in reader.iter_messages(topics=topics):
+            if c.message_encoding == "cdr":
+                if c.id not in decoders:
+                    decoders[c.id] = ros2.decoder_for("cdr", schemas[c.schema_id])
+                out.append((c.topic, decoders[c.id](m.data)))
+            else:
+                out.append((c.topic, json.loads(m.data)))
+    return out

@@ -9,14 +9,15 @@ import math
 import random
 
 import numpy as np
-import orjson
 import pytest
+import zstandard
 from mcap.reader import make_reader
 from mcap.writer import Writer
 from telemetry_helpers import GatedStream
 
 from dentibot.telemetry import McapRecorder, mcap_messages
 from dentibot.telemetry.blocks import COL, COLUMNS, WIDTH, TickBlock, tick_row
+from dentibot.telemetry.cdr import TICK_CODEC
 from dentibot.telemetry.recorder import TelemetryOverflow
 from dentibot.telemetry.recorder_process import RecorderProcess
 from dentibot.telemetry.schema import TICK_FIELDS
@@ -104,8 +105,8 @@ def test_the_summary_takes_a_block_as_its_rows(rate_hz):
 
 
 def _ticks_of(data: bytes) -> list[dict]:
-    return [orjson.loads(m.data) for _s, c, m in make_reader(io.BytesIO(data)).iter_messages()
-            if c.topic == "/tick"]
+    return [TICK_CODEC.decode(m.data) for _s, c, m in
+            make_reader(io.BytesIO(data)).iter_messages() if c.topic == "/tick"]
 
 
 def test_the_recorder_writes_a_block_as_its_rows():
@@ -156,13 +157,17 @@ def test_the_recorder_process_takes_blocks(tmp_path):
     rec.close("ok")
     assert rec.rows_queued == rec.ticks_written == 520 and rec.at_risk_max <= 50
     with open(path, "rb") as f:
-        ticks = [orjson.loads(m.data) for _s, c, m in make_reader(f).iter_messages()
+        ticks = [TICK_CODEC.decode(m.data) for _s, c, m in make_reader(f).iter_messages()
                  if c.topic == "/tick"]
     assert [r["tick"] for r in ticks] == list(range(520))
     assert ticks[0]["q_deg"] == _block(0, 25, 0).cols[0, 0:6].tolist()
 
 
-def _messages_file(fast: bool, chunk_size: int) -> bytes:
+def _messages_file(fast: bool, chunk_size: int, level: int | None = None) -> bytes:
+    """A file of 3000 messages on three channels, flushed every 370 messages: through the
+    library's calls, or (``fast``) through add_messages and, with a zstd ``level``,
+    finish_chunk with a compressor of that level."""
+    compress = None if level is None else zstandard.ZstdCompressor(level=level).compress
     out = io.BytesIO()
     w = Writer(out, chunk_size=chunk_size)
     w.start(profile="", library="test")
@@ -180,7 +185,10 @@ def _messages_file(fast: bool, chunk_size: int) -> bytes:
             for channel, log_ns, data, seq in batch:
                 w.add_message(channel, log_ns, data, log_ns, sequence=seq)
         if start % 370 == 0:
-            w.flush()
+            if fast and compress is not None:
+                mcap_messages.finish_chunk(w, compress)
+            else:
+                w.flush()
     w.finish()
     return out.getvalue()
 
@@ -194,3 +202,21 @@ def test_many_messages_at_once_make_the_librarys_file(chunk_size, monkeypatch):
     assert _messages_file(True, chunk_size) == want
     monkeypatch.setattr(mcap_messages, "FAST", False)
     assert _messages_file(True, chunk_size) == want
+
+
+def test_a_chunk_finished_with_a_compressor_made_once_is_the_library_s_chunk(monkeypatch):
+    """finish_chunk with a level-3 compressor writes the library's file byte for byte (its
+    chunks, their message indexes, the summary that indexes them); at level 1 the same
+    messages read back from a file of its own; elsewhere it is writer.flush()."""
+    want = _messages_file(False, 1 << 20)
+    assert _messages_file(True, 1 << 20, level=3) == want
+    fast1 = _messages_file(True, 1 << 20, level=1)
+    assert fast1 != want
+
+    def read(data):
+        reader = make_reader(io.BytesIO(data))
+        return [(c.topic, m.log_time, m.sequence, m.data) for _s, c, m in
+                reader.iter_messages(log_time_order=False)], reader.get_summary().statistics
+    assert read(fast1) == read(want)
+    monkeypatch.setattr(mcap_messages, "FAST", False)
+    assert _messages_file(True, 1 << 20, level=1) == want

@@ -24,6 +24,7 @@ from telemetry_helpers import real_row
 
 from dentibot.cli import main
 from dentibot.telemetry import McapRecorder, read_recording
+from dentibot.telemetry.cdr import TICK_CODEC
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -97,14 +98,14 @@ def _ticks_with_the_standard_reader(path: Path) -> tuple[list[int], str]:
     written if it opens, else after ``dentibot recover``; and which way it was."""
     try:
         with open(path, "rb") as f:
-            return [orjson.loads(m.data)["tick"] for _s, c, m in make_reader(f).iter_messages()
+            return [TICK_CODEC.decode(m.data)["tick"] for _s, c, m in make_reader(f).iter_messages()
                     if c.topic == "/tick"], "as written"
     except Exception:  # noqa: BLE001 - the other way below must work
         pass
     out = path.with_name(path.stem + ".recovered.mcap")
     assert main(["recover", str(path), "--out", str(out)]) == 0
     with open(out, "rb") as f:
-        return [orjson.loads(m.data)["tick"] for _s, c, m in make_reader(f).iter_messages()
+        return [TICK_CODEC.decode(m.data)["tick"] for _s, c, m in make_reader(f).iter_messages()
                 if c.topic == "/tick"], "recovered"
 
 

@@ -12,7 +12,9 @@ import pytest
 from foxglove_schema_rules import problems
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from mcap.decoder import DecoderFactory as McapDecoderFactory
 from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
 from telemetry_helpers import ramp_row
 
 from dentibot.errors import ConfigError
@@ -64,11 +66,16 @@ def test_every_schema_the_recorder_writes_parses_in_the_viewers(tmp_path):
             rec.record(ramp_row(i))
     with open(path, "rb") as f:
         summary = make_reader(f).get_summary()
-    written = {c.topic: json.loads(summary.schemas[c.schema_id].data)
+    schemas = {c.topic: (c.message_encoding, summary.schemas[c.schema_id])
                for c in summary.channels.values()}
-    assert set(written) == {"/run", "/tick", "/events", "/run/end", "/tf", "/scene"}
-    for topic, schema in written.items():
-        assert problems(schema) == [], topic
+    assert set(schemas) == {"/run", "/tick", "/events", "/run/end", "/tf", "/scene"}
+    for topic, (encoding, schema) in schemas.items():
+        if schema.encoding == "jsonschema":
+            assert encoding == "json"
+            assert problems(json.loads(schema.data)) == [], topic
+        else:                      # ROS 2: the definition parses in Foxglove's own codec
+            assert (schema.encoding, encoding) == ("ros2msg", "cdr"), topic
+            assert DecoderFactory().decoder_for(encoding, schema) is not None, topic
 
 
 # -- Foxglove's message definitions (the SDK's own descriptors) --------------------------------
@@ -375,22 +382,32 @@ def test_handpiece_reaches_back_to_the_flange():
 
 # -- in a recording ----------------------------------------------------------------------------
 
+class _JsonDecoders(McapDecoderFactory):
+    """JSON messages for the mcap reader's decoded iteration."""
+
+    def decoder_for(self, message_encoding, schema):
+        return json.loads if message_encoding == "json" else None
+
+
 def test_recorded_transforms_follow_the_rows_at_their_log_times(tmp_path):
     path = tmp_path / "run.mcap"
     rows = [ramp_row(i) for i in range(50)]
     with McapRecorder(path, {**META, "start_wall_ns": START_NS}) as rec:
         for row in rows:
             rec.record(row)
-    with open(path, "rb") as f:
-        msgs = [(c.topic, m.log_time, json.loads(m.data))
-                for _s, c, m in make_reader(f).iter_messages(topics=["/tf", "/scene"])]
+    with open(path, "rb") as f:       # /tf in CDR, read by Foxglove's own ROS 2 codec
+        msgs = [(c.topic, m.log_time, d) for _s, c, m, d in
+                make_reader(f, decoder_factories=[DecoderFactory(), _JsonDecoders()])
+                .iter_decoded_messages(topics=["/tf", "/scene"])]
     tfs = [(lt, d) for topic, lt, d in msgs if topic == "/tf"]
     assert [lt for lt, _d in tfs] == [START_NS + round(r["t"] * 1e9) for r in rows]
     for row, (lt, d) in zip(rows, tfs, strict=True):
-        tip = _by_child(d)["file_tip"]
-        _approx(tip["translation"], tuple(v / 1000 for v in row["tool_pose"][:3]))
+        tip = next(t for t in d.transforms if t.child_frame_id == "file_tip")
+        assert tip.header.frame_id == "base"
+        got = tip.transform.translation
+        assert (got.x, got.y, got.z) == tuple(v * 0.001 for v in row["tool_pose"][:3])
         sec, nsec = divmod(lt, 1_000_000_000)
-        assert tip["timestamp"] == {"sec": sec, "nsec": nsec}
+        assert (tip.header.stamp.sec, tip.header.stamp.nanosec) == (sec, nsec)
     scenes = [lt for topic, lt, _d in msgs if topic == "/scene"]
     assert scenes == [START_NS + round(i / 500 * 1e9) for i in range(0, 50, 10)]
     assert rec.transforms_written == 50 and rec.scenes_written == 5 and rec.view_errors == 0

@@ -12,13 +12,16 @@ import time
 import numpy as np
 import pytest
 from mcap.reader import make_reader
-from telemetry_helpers import GatedStream, ramp_row
+from mcap_ros2.decoder import DecoderFactory
+from telemetry_helpers import GatedStream, decoded_messages, ramp_row
 
 from dentibot.errors import ConfigError
 from dentibot.telemetry import McapRecorder, TelemetryError, json_schema, read_recording
+from dentibot.telemetry.cdr import definition
 from dentibot.telemetry.foxglove import FOXGLOVE_TOPICS
 from dentibot.telemetry.recorder import TelemetryOverflow
-from dentibot.telemetry.schema import none_fields
+from dentibot.telemetry.schema import TICK_FIELDS
+from dentibot.telemetry.tf_cdr import TF_DEFINITION, TF_SCHEMA_NAME
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -65,8 +68,9 @@ START_ISO = "2023-11-14T22:13:20.123456789Z"
 
 def test_file_is_an_indexed_foxglove_ready_mcap(tmp_path):
     """The mcap library's indexed reader (as Foxglove reads it): json messages, jsonschema
-    schemas identical to the derived ones (and Foxglove's for the 3D topics), log_time =
-    publish_time = wall-clock start + t, message counts per channel."""
+    schemas identical to the derived ones (and Foxglove's for the 3D topics), /tick in CDR
+    with its ROS 2 definition, decoded by Foxglove's own codec; log_time = publish_time =
+    wall-clock start + t, message counts per channel."""
     path = tmp_path / "run.mcap"
     with McapRecorder(path, {**META, "start_wall_ns": START_NS}) as rec:
         for i in range(300):
@@ -78,8 +82,14 @@ def test_file_is_an_indexed_foxglove_ready_mcap(tmp_path):
         topics = {c.topic: c for c in summary.channels.values()}
         assert set(topics) == {"/run", "/tick", "/events", "/run/end", "/tf", "/scene"}
         for topic, channel in topics.items():
-            assert channel.message_encoding == "json"
             schema = summary.schemas[channel.schema_id]
+            if topic in ("/tick", "/tf"):
+                assert (channel.message_encoding, schema.encoding) == ("cdr", "ros2msg")
+                assert (schema.name, schema.data.decode()) == (
+                    ("dentibot_msgs/msg/Tick", definition(TICK_FIELDS)) if topic == "/tick"
+                    else (TF_SCHEMA_NAME, TF_DEFINITION))
+                continue
+            assert channel.message_encoding == "json"
             assert schema.encoding == "jsonschema"
             expected = FOXGLOVE_TOPICS[topic] if topic in FOXGLOVE_TOPICS else json_schema(topic)
             assert json.loads(schema.data) == expected
@@ -88,8 +98,9 @@ def test_file_is_an_indexed_foxglove_ready_mcap(tmp_path):
         assert counts[topics["/tick"].id] == 300 and counts[topics["/events"].id] == 1
         assert counts[topics["/tf"].id] == 300
         assert counts[topics["/scene"].id] == 300 // 10      # 50 Hz of 500 Hz ticks
-        ticks = [(m.log_time, m.publish_time, json.loads(m.data)) for _s, c, m in
-                 reader.iter_messages(topics=["/tick"])]
+        ticks = [(m.log_time, m.publish_time, {"tick": d.tick, "t": d.t}) for _s, _c, m, d in
+                 make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
+                     topics=["/tick"])]
         (_s, _c, run), = reader.iter_messages(topics=["/run"])
         events = [m.log_time for _s, _c, m in reader.iter_messages(topics=["/events"])]
         assert summary.statistics.message_start_time == START_NS
@@ -97,6 +108,7 @@ def test_file_is_an_indexed_foxglove_ready_mcap(tmp_path):
     assert [lt for lt, _pt, _row in ticks] == expected_ns
     assert [pt for _lt, pt, _row in ticks] == expected_ns
     assert [row["tick"] for _lt, _pt, row in ticks] == list(range(300))
+    assert [row["t"] for _lt, _pt, row in ticks] == [i / RATE_HZ for i in range(300)]
     assert run.log_time == run.publish_time == START_NS
     assert events == [expected_ns[-1]]                   # at the last row's t
     meta = json.loads(run.data)
@@ -120,18 +132,21 @@ def test_the_start_defaults_to_the_wall_clock_now(tmp_path):
 
 
 def test_unknown_values_are_left_out_of_the_file_and_read_back_as_none(tmp_path):
-    """The file holds no null at the top of a message (Foxglove's parser takes one type per
-    field); the reader gives the row back as it was handed over, None values included."""
+    """The JSON messages hold no null at the top (Foxglove's parser takes one type per
+    field): an unknown field is left out; in /tick (CDR) an unknown number is NaN and an
+    unknown pose an empty sequence, as Foxglove's codec reads them. The reader gives the row
+    back as it was handed over, None values included."""
     path = tmp_path / "run.mcap"
     row = ramp_row(0, phantom_pose=None, depth_mm=None, completeness=None)
     assert row["true_depth_mm"] is None
     with McapRecorder(path, {**META, "seed": None}) as rec:
         rec.record(row)
-    with open(path, "rb") as f:
-        msgs = {c.topic: json.loads(m.data) for _s, c, m in make_reader(f).iter_messages()}
-    for name in ("phantom_pose", "depth_mm", "completeness", "true_depth_mm"):
-        assert name not in msgs["/tick"]
-    assert None not in msgs["/tick"].values()
+    msgs = dict(decoded_messages(path, ["/run", "/tick"]))
+    tick = msgs["/tick"]
+    assert list(tick.phantom_pose) == [] and list(tick.tooth_pose) == []
+    for name in ("depth_mm", "completeness", "true_depth_mm"):
+        assert math.isnan(getattr(tick, name))
+    assert list(tick.q_deg) == row["q_deg"] and tick.tick == 0
     assert "seed" not in msgs["/run"]
     got = read_recording(path)
     assert got.rows == [row]
@@ -265,23 +280,19 @@ def test_nan_becomes_null_numpy_is_accepted_bad_rows_are_counted(tmp_path):
     path = tmp_path / "run.mcap"
     with McapRecorder(path, META) as rec:
         rec.record(ramp_row(0, fz_n=math.nan, q_deg=np.arange(6.0), tick=np.int64(0)))
-        rec.record({"t": 0.002, "tick": 1, "oops": object()})        # not serialisable
-        rec.record({"t": 0.004, "tick": 2})                          # serialisable, invalid
-        rec.record(ramp_row(3))
+        rec.record({**ramp_row(1), "oops": object()})    # a field the table has not: left
+        rec.record({"t": 0.004, "tick": 2})              # no step, no state: nothing to write
+        rec.record({**ramp_row(3), "q_deg": [1.0, 2.0]})  # two joints of six
+        rec.record(ramp_row(4))
     assert rec.nonfinite_rows == 1
-    assert rec.rows_rejected == 1
-    assert rec.rows_invalid == 3           # the NaN row, the object row, the sparse row
+    assert rec.rows_rejected == 2
+    assert rec.rows_invalid == 4           # the NaN row, the object row, the sparse ones
     assert rec.ticks_written == 3
     rows = read_recording(path).rows
     assert rows[0]["fz_n"] is None and rows[0]["q_deg"] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
-    # the sparse row: the file cannot tell an absent field from an unknown one, and the
-    # reader gives every field of the table back (None where the message has none)
-    assert rows[1] == {**none_fields("/tick"), "t": 0.004, "tick": 2}
-    assert rows[2] == ramp_row(3)
-    with open(path, "rb") as f:
-        first = next(json.loads(m.data) for _s, c, m in make_reader(f).iter_messages()
-                     if c.topic == "/tick")
-    assert "fz_n" not in first                         # NaN is left out, not written as null
+    assert rows[1] == ramp_row(1) and rows[2] == ramp_row(4)
+    first = decoded_messages(path, ["/tick"])[0][1]
+    assert math.isnan(first.fz_n)                     # NaN is a number in CDR
 
 
 def test_event_defaults_to_the_last_row_and_exit_on_exception_aborts(tmp_path):
@@ -330,17 +341,18 @@ def test_bad_metadata_is_refused_before_a_file_is_created(tmp_path):
     assert not path.exists()
 
 
-def test_a_row_whose_text_says_null_is_kept_whole_and_nan_in_an_array_is_null(tmp_path):
-    """Rows are looked at for non-finite values only when orjson wrote a null: a string
-    holding "null" is no such value, a NaN inside an array is (written as null)."""
+def test_non_finite_numbers_of_a_tick_are_counted_nan_reads_back_as_none_inf_as_inf(tmp_path):
+    """/tick is CDR: a string holding "null" is a string, a NaN inside an array is a NaN
+    (read back as None, as an unknown value), an infinity is kept; the rows holding either
+    are counted."""
     path = tmp_path / "null.mcap"
     with McapRecorder(path, {"rate_hz": 500.0}, validate=False, view=False) as rec:
         rec.record(ramp_row(0, step="null step"))
         rec.record(ramp_row(1, q_deg=[0.0, math.nan, 0.0, 0.0, 0.0, 0.0]))
         rec.record(ramp_row(2, fz_n=math.inf))
     assert rec.nonfinite_rows == 2
-    with open(path, "rb") as f:
-        ticks = [json.loads(m.data) for _, ch, m in make_reader(f).iter_messages()
-                 if ch.topic == "/tick"]
-    assert ticks[0]["step"] == "null step"
-    assert ticks[1]["q_deg"][1] is None and "fz_n" not in ticks[2]
+    ticks = [m for _topic, m in decoded_messages(path, ["/tick"])]
+    assert ticks[0].step == "null step"
+    assert math.isnan(ticks[1].q_deg[1]) and ticks[2].fz_n == math.inf
+    rows = read_recording(path).rows
+    assert rows[1]["q_deg"][1] is None and rows[2]["fz_n"] == math.inf

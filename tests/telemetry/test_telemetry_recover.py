@@ -22,6 +22,7 @@ from telemetry_helpers import real_row
 
 from dentibot.cli import main
 from dentibot.telemetry import McapRecorder, read_recording
+from dentibot.telemetry.cdr import TICK_CODEC
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -62,7 +63,7 @@ def _standard_read(path: Path) -> tuple[int, list[int], bool]:
         reader = make_reader(f)
         has_summary = reader.get_summary() is not None
         messages = list(reader.iter_messages())
-    ticks = [orjson.loads(m.data)["tick"] for _s, c, m in messages if c.topic == "/tick"]
+    ticks = [TICK_CODEC.decode(m.data)["tick"] for _s, c, m in messages if c.topic == "/tick"]
     return len(messages), ticks, has_summary
 
 
