@@ -54,6 +54,47 @@ def add_messages(writer: Writer, messages: list[tuple[int, int, bytes, int]]) ->
         return
     stats = writer._Writer__statistics
     size = writer._Writer__chunk_size
+    buf = chunk.record_writer._buffer
+    pos = buf.tell()
+    if not messages:
+        return
+    if pos + sum(len(m[2]) for m in messages) + _HEAD.size * len(messages) > size:
+        _one_by_one(writer, chunk, stats, size, messages)
+        return
+    counts = stats.channel_message_counts
+    indexes = chunk.message_indices
+    pack = _HEAD.pack
+    parts: list[bytes] = []
+    entries: dict[int, list] = {}
+    for channel, log_ns, data, seq in messages:
+        records = entries.get(channel)
+        if records is None:
+            index = indexes.get(channel)
+            if not index:
+                index = indexes[channel] = MessageIndex(channel_id=channel, records=[])
+            records = entries[channel] = index.records
+        records.append((log_ns, pos))
+        counts[channel] += 1
+        parts.append(pack(_OPCODE_MESSAGE, _FIELDS + len(data), channel, seq, log_ns, log_ns))
+        parts.append(data)
+        pos += _HEAD.size + len(data)
+    buf.write(b"".join(parts))
+    times = [m[1] for m in messages]
+    lo, hi = min(times), max(times)
+    if stats.message_count == 0 or lo < stats.message_start_time:
+        stats.message_start_time = lo
+    stats.message_end_time = max(stats.message_end_time, hi)
+    stats.message_count += len(messages)
+    if chunk.num_messages == 0 or lo < chunk.message_start_time:
+        chunk.message_start_time = lo
+    chunk.message_end_time = max(chunk.message_end_time, hi)
+    chunk.num_messages += len(messages)
+
+
+def _one_by_one(writer: Writer, chunk, stats, size: int,
+                messages: list[tuple[int, int, bytes, int]]) -> None:
+    """:func:`add_messages` where the chunk fills up on the way: as ``add_message``, the
+    chunk is finished after the message that takes it past the writer's chunk size."""
     counts = stats.channel_message_counts
     indexes = chunk.message_indices
     pack = _HEAD.pack
@@ -77,7 +118,6 @@ def add_messages(writer: Writer, messages: list[tuple[int, int, bytes, int]]) ->
         if buf.tell() > size:                     # as add_message: the chunk is full
             writer._Writer__maybe_finalize_chunk()
             buf = chunk.record_writer._buffer
-
 
 _OPCODE_MESSAGE_INDEX = 0x07
 _INDEX_HEAD = struct.Struct("<BQHI")               # opcode, length, channel id, entries' bytes

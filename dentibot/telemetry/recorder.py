@@ -911,7 +911,7 @@ class McapRecorder(RecorderBase):
         t = row.get("t")
         try:
             tf_data = view.transforms_cdr(row, log_ns) if tf else None
-            scene_data = orjson.dumps(view.scene(row, log_ns)) \
+            scene_data = view.scene_json(row, log_ns) \
                 if view.scene_due(t, self._last_scene_t) else None
         except Exception as exc:  # noqa: BLE001 - a drawing problem, never the recording's
             self.view_errors += 1
@@ -943,7 +943,9 @@ class McapRecorder(RecorderBase):
             return
         channel, wall0 = self._channels["/tick"], self.start_wall_ns
         ts, k0, n = block.ts, block.k0, len(block)
-        log_ns = [wall0 + round(k * ts * 1e9) for k in range(k0, k0 + n)]
+        # wall0 + round(k ts 1e9) of each tick, as _log_time_ns (rint: half to even, as round)
+        log_ns = (np.rint(np.arange(k0, k0 + n) * ts * 1e9).astype(np.int64)
+                  + wall0).tolist()
         ticks = block.tick_cdr()
         view, tfs = self.view, None
         if view is not None:
@@ -951,36 +953,59 @@ class McapRecorder(RecorderBase):
             try:
                 tfs = view.block_transforms_cdr(block.cols[:, tool:tool + 6],
                                                 block.cols[:, ph:ph + 3], block.phantom_euler,
-                                                np.array(log_ns))
+                                                log_ns)
             except Exception:  # noqa: BLE001 - drawn row by row below, failures counted
                 tfs = None
         tf_channel = self._channels.get(TF_TOPIC)
         nonfinite = n - int(np.isfinite(block.cols).all(axis=1).sum())
-        for j in range(n):
+        seqs = [k & 0xFFFFFFFF for k in range(k0, k0 + n)]
+        j = 0
+        while j < n:                              # up to the next flush, then the flush
+            stop = min(n, j + max(self.flush_ticks - self._unflushed_ticks, 1))
             if not self._unflushed:
                 self._unflushed_since = time.monotonic()
-            k = k0 + j
-            self._last_log_ns = log_ns[j]
-            batch = self._batch                   # a new list after each flush
-            batch.append((channel, log_ns[j], ticks[j], k & 0xFFFFFFFF))
-            self._ticks_done += 1
-            self.ticks_written += 1
-            self._unflushed_ticks += 1
-            self._unflushed += 1
-            if view is not None:
-                if tfs is None:                   # row by row (its failures counted there)
-                    self._write_view(block.rows(j, j + 1)[0], k)
-                else:
-                    batch.append((tf_channel, log_ns[j], tfs[j], k & 0xFFFFFFFF))
-                    self.transforms_written += 1
-                    self._unflushed += 1
-                    if view.scene_due(k * ts, self._last_scene_t):
-                        self._write_view(block.rows(j, j + 1)[0], k, tf=False)
+            if view is None:
+                self._batch += zip([channel] * (stop - j), log_ns[j:stop], ticks[j:stop],
+                                   seqs[j:stop])
+            elif tfs is None:                     # row by row (its failures counted there)
+                for i in range(j, stop):
+                    self._last_log_ns = log_ns[i]
+                    self._batch.append((channel, log_ns[i], ticks[i], seqs[i]))
+                    self._write_view(block.rows(i, i + 1)[0], k0 + i)
+            else:
+                self._write_block_views(block, j, stop, channel, tf_channel, log_ns, ticks,
+                                        tfs, seqs)
+            m = stop - j
+            self._last_log_ns = log_ns[stop - 1]
+            self._ticks_done += m
+            self.ticks_written += m
+            self._unflushed_ticks += m
+            self._unflushed += m
+            j = stop
             if self._unflushed_ticks >= self.flush_ticks:
                 self._flush()
         if nonfinite:                             # kept as they are; NaN reads back as None
             self.nonfinite_rows += nonfinite - 1
             self._count_nonfinite("/tick")
+
+    def _write_block_views(self, block: TickBlock, start: int, stop: int, channel: int,
+                           tf_channel: int, log_ns: list, ticks: list, tfs: list,
+                           seqs: list) -> None:
+        """Rows ``start`` to ``stop`` of a block: each /tick with its /tf, and a /scene where
+        one is due (the view's period of procedure time)."""
+        batch, view = self._batch, self.view
+        ts, k0 = block.ts, block.k0
+        period, last = view.scene_period_s - 1e-9, self._last_scene_t
+        for i in range(start, stop):
+            ln, seq = log_ns[i], seqs[i]
+            batch += ((channel, ln, ticks[i], seq), (tf_channel, ln, tfs[i], seq))
+            t = (k0 + i) * ts
+            if last is None or t < last or t - last >= period:
+                self._last_log_ns = ln
+                self._write_view(block.rows(i, i + 1)[0], k0 + i, tf=False)
+                last = self._last_scene_t
+        self.transforms_written += stop - start
+        self._unflushed += stop - start
 
     def _write_event(self, ev: dict[str, Any]) -> None:
         if self._write("/events", ev, ev["t"], ev["tick"] if isinstance(ev["tick"], int) else 0):

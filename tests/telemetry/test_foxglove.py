@@ -8,6 +8,7 @@ import math
 
 import foxglove.messages
 import numpy as np
+import orjson
 import pytest
 from foxglove_schema_rules import problems
 from hypothesis import given, settings
@@ -453,3 +454,13 @@ def test_tf_numbers_are_the_row_rounded_to_a_nanometre(pose):
     assert [tip["translation"][k] for k in "xyz"] == want
     q = quat_from_euler_xyz_deg(*tool[3:])
     assert [tip["rotation"][k] for k in "xyzw"] == [round(x, 9) for x in q]
+
+
+@pytest.mark.parametrize("row", [
+    {"wrench_h": [0.3, -0.2, 1.5, 0.0, 0.0, 0.0], "phantom_pose": [1, 2, 3, 4, 5, 6]},
+    {"wrench_h": [0.0] * 6}, {}, {"wrench_h": [2.0, 1.0, 0.0]},
+    {"wrench_h": [-1.0, 0.0, 0.0], "phantom_pose": [0.0, 0.0, 0.0, 90.0, 0.0, 0.0]}])
+def test_a_scene_from_its_template_is_the_scene_s_json(row):
+    view = FoxgloveView(tool_6_h=np.eye(4).tolist())
+    for ns in (0, START_NS, 123_456_789_987_654_321):
+        assert view.scene_json(row, ns) == orjson.dumps(view.scene(row, ns))
