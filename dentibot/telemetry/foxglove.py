@@ -511,7 +511,7 @@ class FoxgloveView:
         frames = self._frames(row)
         if not frames:
             return None
-        return tf_encoder([(parent, child) for parent, child, _p, _q in frames]).encode(
+        return tf_encoder(tuple((parent, child) for parent, child, _p, _q in frames)).encode(
             log_ns, [(p[0] * _MM, p[1] * _MM, p[2] * _MM, *q) for _a, _b, p, q in frames])
 
     def block_transforms_cdr(self, tool: Any, phantom_xyz: Any,

@@ -78,7 +78,9 @@ class TfEncoder:
             pos += 56
         self._struct = struct.Struct("".join(fmt))
         self.size = self._struct.size
-        self._names = [n.encode() for pair in self.names for n in pair]
+        #: each transform's names as packed: (length + 1, parent, length + 1, child)
+        self._heads = [(len(p) + 1, p, len(c) + 1, c)
+                       for p, c in ((a.encode(), b.encode()) for a, b in self.names)]
         # a message 4 bytes into a row of words: every float64 of it fills one word
         template = np.zeros(((self.size + 4 + 7) // 8) * 8, dtype=np.uint8)
         template[4:4 + self.size] = np.frombuffer(
@@ -91,9 +93,8 @@ class TfEncoder:
         rotation (x, y, z, qx, qy, qz, qw) of transform ``i``."""
         sec, nsec = divmod(int(log_ns), 1_000_000_000)
         args: list = [CDR_LE, len(self.names)]
-        for i, v in enumerate(values):
-            parent, child = self._names[2 * i], self._names[2 * i + 1]
-            args += (sec, nsec, len(parent) + 1, parent, len(child) + 1, child, *v)
+        for names, v in zip(self._heads, values):
+            args += (sec, nsec, *names, *v)
         return self._struct.pack(*args)
 
     def buffer(self, log_ns: np.ndarray) -> np.ndarray:
