@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import threading
 
 import pytest
 
@@ -10,6 +12,7 @@ from dentibot.runtime.clock import (
     REALTIME_FIFO_PRIORITY,
     REALTIME_NICE,
     LockStepClock,
+    others_raised,
     raised_priority,
     realtime_policy,
 )
@@ -81,36 +84,40 @@ def test_lock_step_leaves_the_priority_alone():
         assert (os.getpriority(os.PRIO_PROCESS, 0), os.sched_getscheduler(0)) == before
 
 
+@contextlib.contextmanager
+def _receiver():
+    """A thread of the process (a driver's receiver, waiting on its socket) while the block
+    runs; yields its native id."""
+    ready, done = threading.Event(), threading.Event()
+    tid: list[int] = []
+
+    def receive() -> None:
+        tid.append(threading.get_native_id())
+        ready.set()
+        done.wait(5.0)
+
+    t = threading.Thread(target=receive, daemon=True)
+    t.start()
+    ready.wait(5.0)
+    try:
+        yield tid[0]
+    finally:
+        done.set()
+        t.join(5.0)
+
+
 @pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="no per-thread priorities")
 def test_the_other_threads_are_raised_with_the_loop_and_restored():
     """A thread of the process that shares the interpreter lock with the control loop (a
     driver's receiver) runs at the raised nice value while the loop runs, and at its own
     before and after; the calling thread is left to raised_priority."""
-    import threading
-
-    from dentibot.runtime.clock import others_raised
-
-    ready, done = threading.Event(), threading.Event()
-    tid: list[int] = []
-
-    def receiver() -> None:
-        tid.append(threading.get_native_id())
-        ready.set()
-        done.wait(5.0)
-
-    t = threading.Thread(target=receiver, daemon=True)
-    t.start()
-    ready.wait(5.0)
-    me_before = os.getpriority(os.PRIO_PROCESS, 0)
-    before = os.getpriority(os.PRIO_PROCESS, tid[0])
-    try:
+    with _receiver() as tid:
+        me_before = os.getpriority(os.PRIO_PROCESS, 0)
+        before = os.getpriority(os.PRIO_PROCESS, tid)
         with others_raised():
-            inside = os.getpriority(os.PRIO_PROCESS, tid[0])
+            inside = os.getpriority(os.PRIO_PROCESS, tid)
             me_inside = os.getpriority(os.PRIO_PROCESS, 0)
-        after = os.getpriority(os.PRIO_PROCESS, tid[0])
-    finally:
-        done.set()
-        t.join(5.0)
+        after = os.getpriority(os.PRIO_PROCESS, tid)
     assert after == before and me_inside == me_before
     if _may_raise() and before > REALTIME_NICE:
         assert inside == REALTIME_NICE
@@ -124,31 +131,14 @@ def test_under_a_real_time_loop_the_other_threads_share_its_policy_and_get_their
     """With the loop at SCHED_FIFO, a receiver thread runs at the loop's own real-time
     priority while the loop runs (nothing of lower priority can then preempt it while it
     holds the interpreter lock), and at its own policy before and after."""
-    import threading
+    def policy(tid: int) -> tuple[int, int]:
+        return os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority
 
-    from dentibot.runtime.clock import others_raised
-
-    ready, done = threading.Event(), threading.Event()
-    tid: list[int] = []
-
-    def receiver() -> None:
-        tid.append(threading.get_native_id())
-        ready.set()
-        done.wait(5.0)
-
-    t = threading.Thread(target=receiver, daemon=True)
-    t.start()
-    ready.wait(5.0)
-    before = os.sched_getscheduler(tid[0]), os.sched_getparam(tid[0]).sched_priority
-    me_before = os.sched_getscheduler(0)
-    try:
+    with _receiver() as tid:
+        before, me_before = policy(tid), os.sched_getscheduler(0)
         with others_raised(fifo_priority=REALTIME_FIFO_PRIORITY):
-            inside = os.sched_getscheduler(tid[0]), os.sched_getparam(tid[0]).sched_priority
-            me_inside = os.sched_getscheduler(0)
-        after = os.sched_getscheduler(tid[0]), os.sched_getparam(tid[0]).sched_priority
-    finally:
-        done.set()
-        t.join(5.0)
+            inside, me_inside = policy(tid), os.sched_getscheduler(0)
+        after = policy(tid)
     assert after == before and me_inside == me_before
     if _may_fifo():
         reset = getattr(os, "SCHED_RESET_ON_FORK", 0)
