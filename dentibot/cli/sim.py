@@ -14,7 +14,7 @@ from pathlib import Path
 
 from dentibot.cli.common import user_errors
 from dentibot.io.devices import devices_yaml
-from dentibot.runtime.clock import raised_priority
+from dentibot.runtime.clock import REALTIME_FIFO_PRIORITY, raised_priority
 from dentibot.sim.serve import ServePorts, VirtualDentiBot
 from dentibot.sim.world import WorldConfig
 
@@ -45,10 +45,21 @@ async def _serve(args: argparse.Namespace) -> None:
             await asyncio.Event().wait()
 
 
+#: SCHED_FIFO priority of the wire simulators where permitted: ahead of every ordinary job,
+#: one below a control loop's (its deadlines come first on a shared machine)
+SIM_FIFO_PRIORITY = REALTIME_FIFO_PRIORITY - 1
+
+
 @user_errors
 def cmd_serve(args: argparse.Namespace) -> int:
-    # a simulated device keeps its deadlines as a real one does: ahead of ordinary jobs
-    with contextlib.suppress(KeyboardInterrupt), raised_priority():
+    # A simulated device keeps its deadlines as a real one does: ahead of ordinary jobs. Its
+    # loop sleeps between steps (half a period), so it may run at SCHED_FIFO where permitted
+    # (else at a raised nice value); the threads it starts (the CAN bus's receivers) inherit
+    # the policy, so none of them is preempted by an ordinary job while it holds the
+    # interpreter lock. Measured: the F/T stream went 20.3 ms stale at nice -10 under one
+    # CPU-bound job beside the control loop.
+    with contextlib.suppress(KeyboardInterrupt), \
+            raised_priority(fifo_priority=SIM_FIFO_PRIORITY, threads_inherit=True):
         asyncio.run(_serve(args))
     return 0
 

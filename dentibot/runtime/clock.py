@@ -315,7 +315,8 @@ REALTIME_FIFO_PRIORITY = 10
 
 
 @contextlib.contextmanager
-def raised_priority(nice: int = REALTIME_NICE, fifo_priority: int | None = None):
+def raised_priority(nice: int = REALTIME_NICE, fifo_priority: int | None = None,
+                    threads_inherit: bool = False):
     """The calling thread's scheduling raised while the block runs, where the system permits
     (CAP_SYS_NICE: root, or the ``RLIMIT_RTPRIO``/``RLIMIT_NICE`` a robot cell's account is
     given); yields how: ``"fifo"`` (SCHED_FIFO at ``fifo_priority``), ``"nice"`` (the nice
@@ -326,12 +327,17 @@ def raised_priority(nice: int = REALTIME_NICE, fifo_priority: int | None = None)
     with them, and its 2 ms deadlines slip by a scheduler slice (milliseconds); the device
     streams then go stale. SCHED_FIFO only for a loop that sleeps between ticks
     (:class:`RealTimeClock` on the kernel timer): a real-time thread that spun would take a
-    core from everything else."""
+    core from everything else.
+
+    The threads and processes the thread starts get the ordinary policy (SCHED_RESET_ON_FORK),
+    unless ``threads_inherit``: a process whose threads all serve its loop (the wire
+    simulators) lets them inherit SCHED_FIFO, so that none of them is preempted by an
+    ordinary job while it holds the interpreter lock."""
     if fifo_priority is not None and hasattr(os, "sched_setscheduler"):
         try:
             policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
-            os.sched_setscheduler(0, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0),
-                                  os.sched_param(fifo_priority))
+            reset = 0 if threads_inherit else getattr(os, "SCHED_RESET_ON_FORK", 0)
+            os.sched_setscheduler(0, os.SCHED_FIFO | reset, os.sched_param(fifo_priority))
         except OSError:                         # not permitted (or no RT time): try nice
             pass
         else:
@@ -369,8 +375,9 @@ def others_raised(nice: int = REALTIME_NICE, fifo_priority: int | None = None):
     that is refused) to the nice value ``nice``; restored on exit. Why: every thread of the
     process takes the interpreter lock, and a thread that holds it when something of higher
     priority preempts it stalls the raised control thread until it runs again. At a nice
-    value it still yields its core to other raised processes (the wire simulators run at
-    nice -10 as well) and the control thread waits a scheduler slice or more for the lock.
+    value it still yields its core to other raised processes (such as the wire simulators
+    where they could not have a real-time policy) and the control thread waits a scheduler
+    slice or more for the lock.
     On the wire at 500 Hz with one CPU-bound job beside, 60 s: with the receivers at nice
     -10, 12 and 30 overruns, stalls of 14 and 53 ms; at the loop's real-time priority, 3
     overruns and 5.9 ms, where a bare loop on the same machine had 5 and 9.4 ms. At the

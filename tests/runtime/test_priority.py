@@ -145,3 +145,17 @@ def test_under_a_real_time_loop_the_other_threads_share_its_policy_and_get_their
         assert inside == (os.SCHED_FIFO | reset, REALTIME_FIFO_PRIORITY)
     else:                                     # refused: the nice value instead, or nothing
         assert inside[0] == before[0]
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task")
+                    or not hasattr(os, "sched_setscheduler"), reason="no per-thread policies")
+@pytest.mark.parametrize("inherit", [False, True])
+def test_a_thread_started_under_sched_fifo_inherits_it_only_when_asked(inherit):
+    """The control loop's threads and processes start at the ordinary policy (reset on
+    fork); the wire simulators' threads inherit the loop's real-time priority."""
+    with raised_priority(fifo_priority=REALTIME_FIFO_PRIORITY, threads_inherit=inherit) as how, \
+            _receiver() as tid:
+        policy = os.sched_getscheduler(tid) & ~getattr(os, "SCHED_RESET_ON_FORK", 0)
+    if how != "fifo":
+        pytest.skip("SCHED_FIFO not permitted here")
+    assert policy == (os.SCHED_FIFO if inherit else os.SCHED_OTHER)
