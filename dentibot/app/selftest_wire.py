@@ -477,8 +477,14 @@ START_BUDGET_S = 12.0
 async def child_simulators(directory: Path, seed: int = 1):
     """The wire simulators on free loopback ports, their device file (``devices.yaml`` in
     ``directory``) and a :class:`SpeedLog`; the garbage collector off meanwhile (a full
-    collection of a large heap stalls the simulators' loop)."""
+    collection of a large heap stalls the simulators' loop), and the calling thread with the
+    simulators' threads at the simulators' real-time priority where permitted, as
+    ``dentibot sim serve`` (:data:`~dentibot.runtime.clock.SIMULATOR_FIFO_PRIORITY`): the
+    controller child's control loop runs at SCHED_FIFO, and the simulators at the ordinary
+    priority were starved by it and by the machine's other jobs (a drive seeing its host's
+    heartbeat 30 ms late before the file turned)."""
     from dentibot.io.devices import devices_yaml
+    from dentibot.runtime.clock import SIMULATOR_FIFO_PRIORITY, raised_priority
     from dentibot.sim.serve import ServePorts, VirtualDentiBot
     from dentibot.sim.world import WorldConfig
 
@@ -487,17 +493,18 @@ async def child_simulators(directory: Path, seed: int = 1):
     gc_was = gc.isenabled()
     gc.disable()
     try:
-        async with VirtualDentiBot(WorldConfig(seed=seed), ports) as bot:
-            devices = Path(directory) / "devices.yaml"
-            # the F/T driver's own freshness bound as loose as the protocol's (50 periods):
-            # its 20 ms hardware default acts first otherwise
-            cfg = bot.devices_config(ft_stale_after_ms=CHILD_STALE_PERIODS * _PERIOD_MS)
-            devices.write_text(devices_yaml(cfg), encoding="utf-8")
-            log = SpeedLog(bot.world)
-            try:
-                yield bot, devices, log
-            finally:
-                log.restore()
+        with raised_priority(fifo_priority=SIMULATOR_FIFO_PRIORITY, threads_inherit=True):
+            async with VirtualDentiBot(WorldConfig(seed=seed), ports) as bot:
+                devices = Path(directory) / "devices.yaml"
+                # the F/T driver's own freshness bound as loose as the protocol's (50
+                # periods): its 20 ms hardware default acts first otherwise
+                cfg = bot.devices_config(ft_stale_after_ms=CHILD_STALE_PERIODS * _PERIOD_MS)
+                devices.write_text(devices_yaml(cfg), encoding="utf-8")
+                log = SpeedLog(bot.world)
+                try:
+                    yield bot, devices, log
+                finally:
+                    log.restore()
     finally:
         if gc_was:
             gc.enable()

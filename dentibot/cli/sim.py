@@ -14,7 +14,7 @@ from pathlib import Path
 
 from dentibot.cli.common import user_errors
 from dentibot.io.devices import devices_yaml
-from dentibot.runtime.clock import REALTIME_FIFO_PRIORITY, raised_priority
+from dentibot.runtime.clock import SIMULATOR_FIFO_PRIORITY, raised_priority
 from dentibot.sim.serve import ServePorts, VirtualDentiBot
 from dentibot.sim.world import WorldConfig
 
@@ -45,11 +45,6 @@ async def _serve(args: argparse.Namespace) -> None:
             await asyncio.Event().wait()
 
 
-#: SCHED_FIFO priority of the wire simulators where permitted: ahead of every ordinary job,
-#: one below a control loop's (its deadlines come first on a shared machine)
-SIM_FIFO_PRIORITY = REALTIME_FIFO_PRIORITY - 1
-
-
 @user_errors
 def cmd_serve(args: argparse.Namespace) -> int:
     # A simulated device keeps its deadlines as a real one does: ahead of ordinary jobs. Its
@@ -59,7 +54,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     # interpreter lock. Measured: the F/T stream went 20.3 ms stale at nice -10 under one
     # CPU-bound job beside the control loop.
     with contextlib.suppress(KeyboardInterrupt), \
-            raised_priority(fifo_priority=SIM_FIFO_PRIORITY, threads_inherit=True):
+            raised_priority(fifo_priority=SIMULATOR_FIFO_PRIORITY, threads_inherit=True):
         asyncio.run(_serve(args))
     return 0
 

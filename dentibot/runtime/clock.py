@@ -312,6 +312,10 @@ REALTIME_NICE = -10
 #: SCHED_FIFO priority of a control loop that waits on the kernel timer: low among real-time
 #: threads (the kernel's interrupt threads run at 50), above every ordinary job.
 REALTIME_FIFO_PRIORITY = 10
+#: SCHED_FIFO priority of the wire simulators where permitted (``dentibot sim serve``, the
+#: wire self-test's simulators): ahead of every ordinary job, as the hardware they stand for
+#: never stalls, and one below a control loop, whose deadlines come first on a shared machine
+SIMULATOR_FIFO_PRIORITY = REALTIME_FIFO_PRIORITY - 1
 
 
 @contextlib.contextmanager
