@@ -41,7 +41,7 @@ import numpy as np
 from dentibot.telemetry.schema import TICK_FIELDS, Field
 
 __all__ = ["CDR_LE", "MESSAGE_ENCODING", "SCHEMA_ENCODING", "TICK_CODEC", "TICK_SCHEMA_NAME",
-           "BlockEncoder", "CdrError", "Codec", "definition"]
+           "BlockEncoder", "CdrError", "Codec", "WordBlock", "definition"]
 
 #: the MCAP encodings of a channel in CDR: its schema's and its messages'
 SCHEMA_ENCODING = "ros2msg"
@@ -124,22 +124,26 @@ class _Plan:
         self.values.append(n)
         self.pos += 4
 
-    def string(self, text: str) -> None:
-        data = text.encode()
+    def string(self, data: bytes) -> None:
+        """A string, its UTF-8 bytes ``data``."""
         self.count(len(data) + 1)
         self.fmt.append(f"{len(data) + 1}s")           # struct pads the NUL
         self.values.append(data)
         self.pos += len(data) + 1
 
+    def pack(self) -> bytes:
+        """The message."""
+        return struct.pack("".join(self.fmt), *self.values)
 
-def _text(f: Field, v: Any) -> str:
+
+def _text(f: Field, v: Any) -> bytes:
+    """The UTF-8 bytes of the string field ``f``'s value ``v``."""
     if not isinstance(v, str):
         raise CdrError(f"{f.name}: {v!r} is not a string")
     try:
-        v.encode()
+        return v.encode()
     except UnicodeEncodeError as exc:
         raise CdrError(f"{f.name}: {v!r} is not UTF-8 text ({exc.reason})") from None
-    return v
 
 
 def _number(f: Field, v: Any) -> float:
@@ -250,8 +254,7 @@ class Codec:
                 st = self._packer(row, tuple(shape))
             return st.pack(*vals)
         except (TypeError, AttributeError, ValueError, struct.error):
-            plan = _plan(self.fields, row)           # names the field, or writes it anyway
-            return struct.pack("".join(plan.fmt), *plan.values)
+            return _plan(self.fields, row).pack()    # names the field, or writes it anyway
 
     def _packer(self, row: dict[str, Any], key: tuple) -> struct.Struct:
         st = struct.Struct("".join(_plan(self.fields, row).fmt))
@@ -300,7 +303,7 @@ class Codec:
     def _layout(self, data: bytes) -> tuple[struct.Struct, list]:
         """The struct that unpacks ``data`` (strings without their length and NUL) and what
         each field takes of its values: (name, kind, count)."""
-        fmt, spans, shape, checks = ["<4x"], [], [], []
+        fmt, spans, checks = ["<4x"], [], []
         pos = 0                                       # after the header
         unpack = struct.unpack_from
 
@@ -318,7 +321,6 @@ class Codec:
             checks.append((pos + 4, n))
             fmt.append("4x")
             pos += 4
-            shape.append(n)
             return n
 
         def string() -> None:
@@ -359,35 +361,29 @@ class Codec:
         return st, spans
 
 
-class BlockEncoder:
-    """The messages of many rows that share their shape (the same strings and sequence
-    lengths) from one template, the message of one of them: a block is an array of ``n``
-    copies whose numbers are overwritten column by column, with no Python per number.
+class WordBlock:
+    """``n`` copies of one message, to be written with no Python per number: every 8-byte
+    number of a CDR message lies 4 bytes (the header) past a multiple of 8, so a message
+    placed 4 bytes into a row of float64 words puts each of its numbers in one word
+    (:meth:`word`): the block is a float64 array ``n`` x :attr:`words`, and writing a field
+    of all its rows is one numpy assignment (``buf.view(np.int64)`` for an int64 field,
+    ``buf.view("<u4")`` with ``(offset + 4) // 4`` for a 4-byte one)."""
 
-    Every 8-byte number of a message lies 4 bytes (the header) past a multiple of 8, so a
-    message placed 4 bytes into a row of float64 words puts each of its numbers in one word
-    (:meth:`slot`): the block is a float64 array ``n`` x :attr:`words`, and writing a field
-    of all its rows is one numpy assignment."""
-
-    def __init__(self, fields: tuple[Field, ...], row: dict[str, Any]) -> None:
-        plan = _plan(fields, row)
-        data = struct.pack("".join(plan.fmt), *plan.values)
-        self.size = len(data)
+    def __init__(self, template: bytes) -> None:
+        self.size = len(template)
         #: float64 words a message takes, with the 4 bytes before it and padding after
         self.words = (self.size + 4 + 7) // 8
         base = np.zeros(self.words * 8, dtype=np.uint8)
-        base[4:4 + self.size] = np.frombuffer(data, dtype=np.uint8)
+        base[4:4 + self.size] = np.frombuffer(template, dtype=np.uint8)
         self._base = base.view("<f8")
-        #: each numeric field's offset in the message (its first number)
-        self.offsets = plan.offsets
 
-    def slot(self, name: str, item: int = 0) -> int:
-        """The word holding item ``item`` of the numeric field ``name``."""
-        return (self.offsets[name] + 4) // 8 + item
+    @staticmethod
+    def word(offset: int) -> int:
+        """The word holding the 8-byte number at ``offset`` in the message."""
+        return (offset + 4) // 8
 
     def buffer(self, n: int) -> np.ndarray:
-        """``n`` copies of the template (n x :attr:`words` float64): write fields through
-        :meth:`slot` columns (``buf.view(np.int64)`` for an int64 field)."""
+        """``n`` copies of the template (n x :attr:`words` float64)."""
         buf = np.empty((n, self.words), dtype="<f8")
         buf[:] = self._base
         return buf
@@ -396,6 +392,22 @@ class BlockEncoder:
         """The messages of ``buf``, one per row."""
         data, stride, size = buf.tobytes(), self.words * 8, self.size
         return [data[i + 4:i + 4 + size] for i in range(0, len(data), stride)]
+
+
+class BlockEncoder(WordBlock):
+    """The messages of many rows of a field table that share their shape (the same strings
+    and sequence lengths), from one template, the message of one of them (a
+    :class:`WordBlock`): a field of every row is written through :meth:`slot`."""
+
+    def __init__(self, fields: tuple[Field, ...], row: dict[str, Any]) -> None:
+        plan = _plan(fields, row)
+        super().__init__(plan.pack())
+        #: each numeric field's offset in the message (its first number)
+        self.offsets = plan.offsets
+
+    def slot(self, name: str, item: int = 0) -> int:
+        """The word holding item ``item`` of the numeric field ``name``."""
+        return self.word(self.offsets[name]) + item
 
 
 #: the ``/tick`` messages' codec

@@ -845,9 +845,11 @@ class McapRecorder(RecorderBase):
         self._count_nonfinite(what)
         return data
 
-    def _count_nonfinite(self, what: str) -> None:
-        self.nonfinite_rows += 1
-        if self.nonfinite_rows <= _LOG_FIRST:
+    def _count_nonfinite(self, what: str, rows: int = 1) -> None:
+        """``rows`` more rows with a non-finite number (logged while the first few)."""
+        logged = self.nonfinite_rows < _LOG_FIRST
+        self.nonfinite_rows += rows
+        if logged:
             log.warning("telemetry.nonfinite", path=str(self.path), what=what,
                         detail="non-finite floats: a NaN reads back as None" if what == "/tick"
                         else "non-finite floats written as null")
@@ -990,8 +992,7 @@ class McapRecorder(RecorderBase):
             if self._unflushed_ticks >= self.flush_ticks:
                 self._flush()
         if nonfinite:                             # kept as they are; NaN reads back as None
-            self.nonfinite_rows += nonfinite - 1
-            self._count_nonfinite("/tick")
+            self._count_nonfinite("/tick", nonfinite)
 
     def _write_block_views(self, block: TickBlock, start: int, stop: int, channel: int,
                            tf_channel: int, log_ns: list, ticks: list, tfs: list,
@@ -1000,15 +1001,12 @@ class McapRecorder(RecorderBase):
         one is due (the view's period of procedure time)."""
         batch, view = self._batch, self.view
         ts, k0 = block.ts, block.k0
-        period, last = view.scene_period_s - 1e-9, self._last_scene_t
         for i in range(start, stop):
             ln, seq = log_ns[i], seqs[i]
             batch += ((channel, ln, ticks[i], seq), (tf_channel, ln, tfs[i], seq))
-            t = (k0 + i) * ts
-            if last is None or t < last or t - last >= period:
+            if view.scene_due((k0 + i) * ts, self._last_scene_t):
                 self._last_log_ns = ln
                 self._write_view(block.rows(i, i + 1)[0], k0 + i, tf=False)
-                last = self._last_scene_t
         self.transforms_written += stop - start
         self._unflushed += stop - start
 

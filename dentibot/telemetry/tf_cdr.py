@@ -15,7 +15,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from dentibot.telemetry.cdr import CDR_LE
+from dentibot.telemetry.cdr import CDR_LE, WordBlock
 
 __all__ = ["TF_DEFINITION", "TF_SCHEMA_NAME", "TfEncoder", "tf_encoder"]
 
@@ -81,11 +81,8 @@ class TfEncoder:
         #: each transform's names as packed: (length + 1, parent, length + 1, child)
         self._heads = [(len(p) + 1, p, len(c) + 1, c)
                        for p, c in ((a.encode(), b.encode()) for a, b in self.names)]
-        # a message 4 bytes into a row of words: every float64 of it fills one word
-        template = np.zeros(((self.size + 4 + 7) // 8) * 8, dtype=np.uint8)
-        template[4:4 + self.size] = np.frombuffer(
-            self.encode(0, [(0.0,) * 7] * len(self.names)), dtype=np.uint8)
-        self._template = template.view("<f8")
+        self._block = WordBlock(self.encode(0, [(0.0,) * 7] * len(self.names)))
+        # each transform's sec among the block's 4-byte words (nanosec the next one)
         self._sec = np.array([(at + 4) // 4 for at in self._stamps], dtype=np.intp)
 
     def encode(self, log_ns: int, values: Sequence[Sequence[float]]) -> bytes:
@@ -100,9 +97,9 @@ class TfEncoder:
     def buffer(self, log_ns: np.ndarray) -> np.ndarray:
         """The messages of ``n`` ticks at ``log_ns`` (n int64), their numbers to be written:
         ``n`` rows of float64 words, each holding a message 4 bytes in, so that every
-        number of it is one word (transform ``i``'s seven from :meth:`word` ``(i)`` on)."""
-        buf = np.empty((len(log_ns), self._template.size), dtype="<f8")
-        buf[:] = self._template
+        number of it is one word (transform ``i``'s seven from :meth:`word` ``(i)`` on):
+        a :class:`~dentibot.telemetry.cdr.WordBlock` with the stamps written."""
+        buf = self._block.buffer(len(log_ns))
         words = buf.view("<u4")
         sec, nsec = np.divmod(np.asarray(log_ns, dtype=np.int64), 1_000_000_000)
         words[:, self._sec] = sec.astype(np.uint32)[:, None]
@@ -111,12 +108,11 @@ class TfEncoder:
 
     def word(self, i: int) -> int:
         """The word of :meth:`buffer`'s rows holding transform ``i``'s first number."""
-        return (self._numbers[i] + 4) // 8
+        return self._block.word(self._numbers[i])
 
     def messages(self, buf: np.ndarray) -> list[bytes]:
         """The messages of a :meth:`buffer`, one per row."""
-        data, stride, size = buf.tobytes(), buf.shape[1] * 8, self.size
-        return [data[i + 4:i + 4 + size] for i in range(0, len(data), stride)]
+        return self._block.messages(buf)
 
 
 _ENCODERS: dict[tuple, TfEncoder] = {}
