@@ -12,6 +12,7 @@ ticks costs about as much as handing over one row.
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
 from typing import Any
 
@@ -95,6 +96,13 @@ class _TickTemplate:
 #: /tick message templates by what a block's rows share (a few per run)
 _TEMPLATES: dict[tuple, _TickTemplate] = {}
 
+#: A block's wire form (:meth:`TickBlock.packed`): this tag, then the header (first tick,
+#: ticks, columns, period, working length, reversals, the phantom's three angles, the
+#: step's and the state's UTF-8 lengths), the two names, and the columns' float64 values,
+#: little-endian. A pickle starts with 0x80, never with the tag.
+WIRE_TAG = b"B"
+_WIRE_HEAD = struct.Struct("<qIIddq3dHH")
+
 
 @dataclass(slots=True)
 class TickBlock:
@@ -154,6 +162,34 @@ class TickBlock:
         buf[:, tpl.t] = ticks * self.ts                  # t = k ts, as the rows compute it
         buf.view(np.int64)[:, tpl.tick] = ticks
         return tpl.enc.messages(buf)
+
+    def packed(self) -> list:
+        """The block's wire form: a list of buffers to write one after the other (no copy
+        of the columns), read back by :meth:`unpack`; about 1 us against 20-50 us for a
+        pickle of the block."""
+        step, state = self.step.encode(), self.state.encode()
+        cols = np.ascontiguousarray(self.cols, dtype="<f8")
+        head = WIRE_TAG + _WIRE_HEAD.pack(
+            self.k0, cols.shape[0], cols.shape[1], self.ts, self.working_length_mm,
+            self.reversals, *self.phantom_euler, len(step), len(state)) + step + state
+        return [head, memoryview(cols).cast("B")]
+
+    @classmethod
+    def unpack(cls, data: bytes | bytearray | memoryview) -> TickBlock:
+        """The block of :meth:`packed`'s buffers, joined (its columns a copy, writable)."""
+        if bytes(data[:1]) != WIRE_TAG:
+            raise ValueError("not a packed tick block")
+        (k0, n, width, ts, wl, rev, e0, e1, e2, n_step, n_state) = _WIRE_HEAD.unpack_from(
+            data, 1)
+        at = 1 + _WIRE_HEAD.size
+        step = bytes(data[at:at + n_step]).decode()
+        state = bytes(data[at + n_step:at + n_step + n_state]).decode()
+        at += n_step + n_state
+        if len(data) - at != 8 * n * width:
+            raise ValueError(f"a packed tick block of {n} x {width} values has "
+                             f"{len(data) - at} bytes of them")
+        cols = np.frombuffer(data, dtype="<f8", count=n * width, offset=at).reshape(n, width)
+        return cls(cols.astype(np.float64), k0, ts, step, state, wl, rev, (e0, e1, e2))
 
     def part(self, start: int, stop: int) -> TickBlock:
         """Ticks ``start`` to ``stop`` of the block, as a block."""

@@ -45,6 +45,7 @@ import math
 import multiprocessing
 import os
 import pickle
+import select
 import signal
 import sys
 import threading
@@ -59,7 +60,7 @@ import structlog
 
 from dentibot.errors import ConfigError
 from dentibot.logs import configure_default, configure_logging, logging_settings
-from dentibot.telemetry.blocks import TickBlock
+from dentibot.telemetry.blocks import WIRE_TAG, TickBlock
 from dentibot.telemetry.recorder import McapRecorder, RecorderBase, TelemetryOverflow
 from dentibot.telemetry.schema import END_STATUSES, TelemetryError
 
@@ -198,6 +199,9 @@ class RecorderProcess(RecorderBase):
         self._proc, rows_w, acks_r = _take_spare() or _spawn()
         self._rows: Connection = rows_w
         self._acks: Connection = acks_r
+        # one poll object for the acks (Connection.poll builds a selector each call: 15 us)
+        self._acks_poll = select.poll()
+        self._acks_poll.register(acks_r.fileno(), select.POLLIN)
         # dropped without close(): the pipes close, the child writes out what it has
         self._release = weakref.finalize(self, _release, rows_w, acks_r)
         rows_w.send((str(path), metadata, options, logging_settings()))
@@ -280,14 +284,13 @@ class RecorderProcess(RecorderBase):
         if self._in_parts_or_empty(block):
             return
         n = len(block)
-        if not self._pending:
-            self._pending_since = time.monotonic()
-        self._pending.append(("block", block))
+        if self._pending:                         # what came before it, first
+            self._send()
         self.rows_queued += n
         self.at_risk_max = max(self.at_risk_max, self.rows_queued - self._settled)
         self.queue_depth_max = max(self.queue_depth_max, n)
         self._last_t = (block.k0 + n - 1) * block.ts
-        self._send()
+        self._write(b"".join(block.packed()))     # its wire form: no pickle
 
     def event(self, kind: str, detail: str = "", *, t: float | None = None,
               tick: int | None = None) -> None:
@@ -306,6 +309,11 @@ class RecorderProcess(RecorderBase):
             data = pickle.dumps(items, _PICKLE)
         except (pickle.PicklingError, TypeError, AttributeError):
             data = pickle.dumps([it for it in items if _picklable(it, self.path)], _PICKLE)
+        self._write(data, raise_dead)
+
+    def _write(self, data: bytes, raise_dead: bool = True) -> None:
+        """One message to the child (a pickled list of items, or a packed block); then
+        read what it reported."""
         try:
             self._rows.send_bytes(data)
         except OSError as exc:                    # the child is gone
@@ -321,10 +329,10 @@ class RecorderProcess(RecorderBase):
     def _read_acks(self, timeout: float = 0.0) -> bool:
         """Read what the child reported; wait up to ``timeout`` for the first message.
         True if anything was read."""
-        acks = self._acks
+        acks, ready = self._acks, self._acks_poll.poll
         got = False
         try:
-            while acks.poll(timeout):
+            while ready(max(timeout, 0.0) * 1000.0):
                 self._on_ack(acks.recv())
                 got = True
                 timeout = 0.0
@@ -486,9 +494,12 @@ def _child_main(rows: Connection, acks: Connection) -> None:
         else None
     report(("ready", rec.metadata, rec.budget, period))
     dead: TelemetryError | None = None
+    poller = select.poll()               # made once (Connection.poll builds one a call)
+    poller.register(rows.fileno(), select.POLLIN)
+    ready, wait_ms = poller.poll, rec.flush_interval_s * 1000.0
     while True:
         try:
-            if not rows.poll(rec.flush_interval_s):
+            if not ready(wait_ms):
                 if dead is None:
                     try:
                         rec.flush_due()          # the rows of a pause reach the file
@@ -497,7 +508,9 @@ def _child_main(rows: Connection, acks: Connection) -> None:
                         report(("dead", exc if _pickles(exc) else TelemetryError(path, repr(exc)),
                                 _counters(rec)))
                 continue
-            items = pickle.loads(rows.recv_bytes())
+            data = rows.recv_bytes()
+            items = ([("block", TickBlock.unpack(data))] if data[:1] == WIRE_TAG
+                     else pickle.loads(data))
         except (EOFError, OSError, _Terminated):  # the control process is gone, or ending
             rec.close_unfinished()               # without closing (daemon: terminated)
             return

@@ -42,9 +42,11 @@ import numpy as np
 from rich.table import Table
 
 from dentibot.errors import ConfigError
+from dentibot.telemetry import summary_kernels as sk
 from dentibot.telemetry.blocks import COL, TickBlock
 from dentibot.telemetry.reader import MessageStream, Recording
 from dentibot.telemetry.schema import END_STATUSES
+from dentibot.telemetry.summary_kernels import all_finite, block_figures
 
 __all__ = ["INCOMPLETE", "RunSummary", "StepSummary", "SummaryAccumulator", "summarize_file",
            "summarize_recording", "summarize_stream", "summary_json", "summary_table"]
@@ -194,10 +196,16 @@ class _Tick:
     lateness: float | None
 
 
+#: a block's ticks' lateness (none: the compiled ticks run in lock-step time)
+_ZEROS = array("d", bytes(8 * 512))
+
+
 #: the columns of a block of rows a summary reads: depth, completeness, file torque, motor
 #: speed, the force (3)
-_BLOCK_READS = [COL["depth_mm"], COL["completeness"], COL["file_torque_mnm"], COL["motor_rpm"],
-                COL["wrench_h"], COL["wrench_h"] + 1, COL["wrench_h"] + 2]
+_DEPTH, _DONE, _TORQUE, _RPM, _FORCE = (COL[name] for name in (
+    "depth_mm", "completeness", "file_torque_mnm", "motor_rpm", "wrench_h"))
+_BLOCK_READS = np.array([_DEPTH, _DONE, _TORQUE, _RPM, _FORCE, _FORCE + 1, _FORCE + 2],
+                        dtype=np.intp)
 
 
 class SummaryAccumulator:
@@ -270,8 +278,8 @@ class SummaryAccumulator:
         n = len(block)
         if not n:
             return
-        cols = block.cols[:, _BLOCK_READS]
-        if not np.isfinite(cols).all():           # an unknown value somewhere: row by row
+        cols = block.cols
+        if not all_finite(cols, _BLOCK_READS):   # an unknown value somewhere: row by row
             for row in block.rows():
                 self.add(row)
             return
@@ -282,32 +290,23 @@ class SummaryAccumulator:
         rev = block.reversals
         rev_step, self._prev_reversals = max(rev - self._prev_reversals, 0), rev
         self._prev_fractured = self._prev_moved = False
-        depth, completeness, torque, rpm = cols[:, 0], cols[-1, 1], np.abs(cols[:, 2]), cols[:, 3]
-        fx, fy, fz = cols[:, 4], cols[:, 5], cols[:, 6]
-        force_peak = float(np.sqrt(fx * fx + fy * fy + fz * fz).max())
-        depth_max, torque_peak = float(depth.max()), float(torque.max())
-        turning = torque[rpm != 0.0].tolist()
-        prev, k, ts, dts = self._prev_t, block.k0, block.ts, []
-        for i in range(n):
-            t = (k + i) * ts
-            dts.append(max(t - prev, 0.0))
-            prev = t
-        self._prev_t = prev
-        lateness = [0.0] * n
-        for fig in (self._run, figures):
+        run = self._run
+        sums = np.array([run.duration_s, figures.duration_s, run.torque_abs_sum,
+                         figures.torque_abs_sum])
+        depth_max, torque_peak, force_peak, turning, self._prev_t = block_figures(
+            cols, _DEPTH, _TORQUE, _RPM, _FORCE, block.k0, block.ts, self._prev_t, sums)
+        completeness = float(cols[-1, _DONE])
+        lateness = _ZEROS[:n] if n <= len(_ZEROS) else array("d", bytes(8 * n))
+        run.duration_s, figures.duration_s = float(sums[sk.DURATION_RUN]), \
+            float(sums[sk.DURATION_STEP])
+        run.torque_abs_sum, figures.torque_abs_sum = float(sums[sk.TORQUE_RUN]), \
+            float(sums[sk.TORQUE_STEP])
+        for fig in (run, figures):
             fig.ticks += n
-            duration = fig.duration_s
-            for dt in dts:
-                duration += dt
-            fig.duration_s = duration
             fig.depth_max = _max(fig.depth_max, depth_max)
-            fig.completeness = float(completeness)
+            fig.completeness = completeness
             fig.torque_peak = _max(fig.torque_peak, torque_peak)
-            total = fig.torque_abs_sum
-            for x in turning:
-                total += x
-            fig.torque_abs_sum = total
-            fig.torque_n += len(turning)
+            fig.torque_n += turning
             fig.force_peak = _max(fig.force_peak, force_peak)
             fig.reversals += rev_step
             fig.lateness.extend(lateness)

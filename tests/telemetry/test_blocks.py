@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import io
 import math
+import pickle
 import random
 
 import numpy as np
@@ -73,6 +74,25 @@ def test_a_block_gives_each_tick_its_row():
     assert b.row(-1) == rows[-1] and b.row(2) == rows[2]
     part = b.part(2, 5)
     assert part.k0 == 1002 and part.rows() == rows[2:5]
+
+
+def test_a_block_s_wire_form_gives_the_same_block_back():
+    """What the recorder process receives: every number bit for bit, the names (not ASCII
+    too), the shared values; a pickle or a cut block is refused, not misread."""
+    b = _block(123456, 9, 5, reversals=4, step="3:drill — élargir", state="treating.retracting")
+    b.cols[2, COL["depth_mm"]] = math.nan
+    data = b"".join(b.packed())
+    assert data[:1] == b"B"
+    back = TickBlock.unpack(data)
+    assert back.cols.tobytes() == b.cols.tobytes() and back.cols.flags.writeable
+    assert (back.k0, back.ts, back.step, back.state, back.working_length_mm, back.reversals,
+            back.phantom_euler) == (123456, 1.0 / RATE_HZ, "3:drill — élargir",
+                                    "treating.retracting", 16.0, 4, (180.0, 0.0, 90.0))
+    assert [r["tick"] for r in back.rows()] == list(range(123456, 123465))
+    with pytest.raises(ValueError, match="not a packed tick block"):
+        TickBlock.unpack(pickle.dumps([("block", b)], pickle.HIGHEST_PROTOCOL))
+    with pytest.raises(ValueError, match="9 x 42 values has 3016 bytes"):
+        TickBlock.unpack(data[:-8])
 
 
 def _by_rows(blocks: list[TickBlock], rate_hz: float | None) -> SummaryAccumulator:
