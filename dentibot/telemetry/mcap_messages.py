@@ -135,10 +135,10 @@ def finish_chunk(writer: Writer, compress: Callable[[bytes], bytes] | None = Non
             or writer._Writer__compression != CompressionType.ZSTD):
         writer.flush()
         return
+    stream = writer._Writer__stream
     if chunk.num_messages:
         records = writer._Writer__record_builder
         flush = writer._Writer__flush
-        stream = writer._Writer__stream
         writer._Writer__statistics.chunk_count += 1
         data = chunk.end()
         compressed = compress(data)

@@ -152,6 +152,27 @@ def test_the_recorder_writes_a_block_as_its_rows():
     assert files[0] == files[1]                         # byte for byte
 
 
+@pytest.mark.parametrize("chunk_size", [1 << 20, 2000])
+def test_a_block_makes_the_rows_file_whatever_the_chunk_size(chunk_size):
+    """Blocks written whole: byte for byte the rows' file, scenes included, also where a
+    block's messages fill 2 kB chunks on the way (a flush then finds its chunk empty)."""
+    blocks = [_block(0, 25), _block(25, 60, 1), _block(85, 7, 2)]
+    files = []
+    for whole in (True, False):
+        stream = io.BytesIO()
+        rec = McapRecorder(stream, {**META, "start_wall_ns": 10**18}, chunk_size=chunk_size)
+        for b in blocks:
+            if whole:
+                rec.record_block(b)
+            else:
+                for row in b.rows():
+                    rec.record(row)
+        rec.close("ok")
+        assert rec.scenes_written == 10 and rec.transforms_written == 92
+        files.append(stream.getvalue())
+    assert files[0] == files[1]
+
+
 def test_a_block_that_finds_no_room_is_dropped_loudly():
     stream = GatedStream()
     rec = McapRecorder(stream, META, flush_interval_s=0.02, max_wait_s=0.1)
