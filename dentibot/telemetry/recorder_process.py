@@ -5,8 +5,9 @@ tick (JSON, the ``/tf`` view, the mcap library's records, compression), all of i
 interpreter lock the control task needs. :class:`RecorderProcess` runs that same recorder in a
 child process, on another core and under another interpreter lock, writing in the child's
 one thread. The control task pays for pickling its rows in batches (about 3 us a row), or a
-block of rows as one array (:meth:`RecorderProcess.record_block`), and one pipe write per
-batch.
+block of rows in its wire form (:meth:`RecorderProcess.record_block`,
+:meth:`~dentibot.telemetry.blocks.TickBlock.packed`: a header and the columns' bytes, about
+1 us where a pickle of the block took 20-50), and one pipe write per batch.
 
 Same guarantees as :class:`~dentibot.telemetry.recorder.McapRecorder`, with the same
 parameters:
@@ -276,8 +277,8 @@ class RecorderProcess(RecorderBase):
             self._send()
 
     def record_block(self, block: TickBlock) -> None:
-        """Hand a block of tick rows over (:class:`~dentibot.telemetry.blocks.TickBlock`, one
-        pickled array): the same as :meth:`record` of each of its rows, with one wait for room
+        """Hand a block of tick rows over (:class:`~dentibot.telemetry.blocks.TickBlock`, in
+        its wire form, after anything still in the batch): the same as :meth:`record` of each of its rows, with one wait for room
         for all of them (a block larger than the budget goes in parts)."""
         if self._dead is not None or self._closed:
             self._raise_dead()
