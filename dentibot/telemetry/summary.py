@@ -42,11 +42,17 @@ import numpy as np
 from rich.table import Table
 
 from dentibot.errors import ConfigError
-from dentibot.telemetry import summary_kernels as sk
 from dentibot.telemetry.blocks import COL, TickBlock
 from dentibot.telemetry.reader import MessageStream, Recording
 from dentibot.telemetry.schema import END_STATUSES
-from dentibot.telemetry.summary_kernels import all_finite, block_figures
+from dentibot.telemetry.summary_kernels import (
+    DURATION_RUN,
+    DURATION_STEP,
+    TORQUE_RUN,
+    TORQUE_STEP,
+    all_finite,
+    block_figures,
+)
 
 __all__ = ["INCOMPLETE", "RunSummary", "StepSummary", "SummaryAccumulator", "summarize_file",
            "summarize_recording", "summarize_stream", "summary_json", "summary_table"]
@@ -297,10 +303,10 @@ class SummaryAccumulator:
             cols, _DEPTH, _TORQUE, _RPM, _FORCE, block.k0, block.ts, self._prev_t, sums)
         completeness = float(cols[-1, _DONE])
         lateness = _ZEROS[:n] if n <= len(_ZEROS) else array("d", bytes(8 * n))
-        run.duration_s, figures.duration_s = float(sums[sk.DURATION_RUN]), \
-            float(sums[sk.DURATION_STEP])
-        run.torque_abs_sum, figures.torque_abs_sum = float(sums[sk.TORQUE_RUN]), \
-            float(sums[sk.TORQUE_STEP])
+        run.duration_s, figures.duration_s = float(sums[DURATION_RUN]), \
+            float(sums[DURATION_STEP])
+        run.torque_abs_sum, figures.torque_abs_sum = float(sums[TORQUE_RUN]), \
+            float(sums[TORQUE_STEP])
         for fig in (run, figures):
             fig.ticks += n
             fig.depth_max = _max(fig.depth_max, depth_max)
