@@ -6,6 +6,7 @@ from __future__ import annotations
 import gc
 import io
 import os
+import pickle
 import signal
 import time
 
@@ -171,3 +172,16 @@ def test_a_stopped_recorder_process_overflows_loudly_and_drops_nothing_silently(
     rec.record(real_row(6))
     rec.close()
     assert [r["tick"] for r in read_recording(tmp_path / "a.mcap").rows] == [0, 1, 2, 3, 4, 6]
+
+
+def test_a_flush_report_crosses_packed_and_reads_as_its_tuple():
+    """The child's most frequent report, packed: the ticks settled and every counter come
+    back as the tuple a pickle gave; the other reports stay pickles."""
+    from dentibot.telemetry import recorder_process as rp
+
+    counters = {name: 10**12 + i for i, name in enumerate(rp.CHILD_COUNTERS)}
+    data = rp._FLUSHED + rp._FLUSHED_BODY.pack(4321, *counters.values())
+    assert rp._ack(data) == ("flushed", 4321, counters)
+    dead = ("dead", TelemetryError("x.mcap", "disk full"), counters)
+    back = rp._ack(pickle.dumps(dead))
+    assert back[0] == "dead" and str(back[1]) == str(dead[1]) and back[2] == counters
