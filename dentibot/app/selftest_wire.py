@@ -14,7 +14,9 @@ runs on a real-time clock. Two kinds of entries (:data:`WIRE_FAULTS`):
   terminated (SIGTERM). They take seconds each (the child's start-up).
 
 Every time is measured on the wall clock of this process (``time.monotonic``), from the
-injection: ``detected_ms`` until the first telemetry row whose state is ``fault`` reached the
+injection (for ``modbus_foreign_client``, the foreign client's first write acknowledged: its
+own round trip through this process's event loop, 6-14 ms, is not the runtime's):
+``detected_ms`` until the first telemetry row whose state is ``fault`` reached the
 runtime's sink; ``file_stopped_ms`` from that detection until the simulated handpiece's true
 speed, sampled at every World step here, is below 1 rpm. For the host faults the controller
 reports nothing: there ``detected_ms`` runs from the signal to the drive's heartbeat error
@@ -140,8 +142,10 @@ WIRE_DETECT_MS: dict[str, float] = {
     # within the drive's settling time (ObserverLimits.settle_s, 100 ms; 60 -> 150 rpm alone
     # would cross the 30 % tolerance in 2.2 ms), then 8 ms persistence, a SYNC, a tick
     "can_foreign_master": 100.0 + 8.0 + 2 * _PERIOD_MS,
-    # the foreign write, the next read-back (every 10 ms poll), the next tick
-    "modbus_foreign_client": 10.0 + 2 * _PERIOD_MS,
+    # from the foreign write acknowledged: the driver's next poll (every 10 ms), its two
+    # requests in turn (the inputs, then the watchdog's read-back: each answered within a
+    # period on loopback), then the next tick
+    "modbus_foreign_client": 10.0 + 2 * _PERIOD_MS + 2 * _PERIOD_MS,
     "arm_half_open": _STALE_MS + _PERIOD_MS,
     # 60 rpm coasting leaves the tolerance (42 rpm) in 3.6 ms, 8 ms persistence, SYNC, tick
     "handpiece_power_loss": 3.6 + 8.0 + 2 * _PERIOD_MS,
@@ -321,6 +325,8 @@ class _ForeignModbusClient:
         self.client = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=1)
         self.port, self.period_s = port, period_s
         self.writes = 0
+        #: when the first write was acknowledged (monotonic): the watchdog is off from then
+        self.first_written_at: float | None = None
         self._task: asyncio.Task | None = None
 
     async def connect(self) -> None:
@@ -334,6 +340,8 @@ class _ForeignModbusClient:
             point(Table.HOLDING_REGISTER, "watchdog_ms").address, 0, device_id=1)
         if rr.isError():
             raise RuntimeError(f"wire selftest: the foreign write was refused: {rr}")
+        if self.first_written_at is None:
+            self.first_written_at = time.monotonic()
         self.writes += 1
 
     def start(self) -> None:
@@ -421,6 +429,8 @@ async def _run_runtime_fault(name: str, seed: int, settle_s: float,
                 k = next((i for i in range(k0, len(rows)) if rows[i]["state"] == "fault"),
                          None)
                 t_det = None if k is None else arrived[k]
+                if isinstance(foreign, _ForeignModbusClient) and foreign.first_written_at:
+                    t0 = foreign.first_written_at   # the registers overwritten from then
                 await proc.run_for(0.2)             # the safe state holds, the file stops
                 final = rt.state
                 arm_speed = max(abs(x) for x in world.arm.qdot)

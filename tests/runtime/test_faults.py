@@ -73,8 +73,10 @@ _WIRE_DETECT_MS = {
     "emcy": 2 * _TS_MS,
     # the drive follows the foreign set-point within its settling time, then persistence
     "can_foreign_master": _LIM.settle_s * 1e3 + _LIM.persist_s * 1e3 + 2 * _TS_MS,
-    # the aux driver's 10 ms poll reads HR 6-7 back, then the tick that reads the driver
-    "modbus_foreign_client": 10.0 + 2 * _TS_MS,
+    # from the foreign write's acknowledgement: the aux driver's 10 ms poll, its inputs'
+    # read and then HR 6-7 read back (a Modbus request and its answer each: at most a period
+    # on loopback), then the tick that reads the driver
+    "modbus_foreign_client": 10.0 + 2 * _TS_MS + 2 * _TS_MS,
     "arm_half_open": _STALE_MS + _TS_MS,
     # coasting from 60 rpm toward 0 leaves the 30 % band, then persistence, SYNC, tick
     "handpiece_power_loss": _crossing_ms(60.0, 0.0, _LIM.speed_tolerance_share)
