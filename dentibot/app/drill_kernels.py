@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from dentibot.control.admittance_kernels import command
+from dentibot.control.admittance_kernels import command, lateral_scale
 from dentibot.control.canal_axis_kernels import feed_scale
 from dentibot.control.canal_axis_kernels import step as axis_step
 from dentibot.control.canal_axis_kernels import twist as axis_twist
@@ -126,7 +126,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
      cmd_out) = sup
     (dh, tool, ref_h, g_offset, g_gain, to_h, efficiency, friction_a, depth_o, depth_a) = ctl
     (f_a, f_c, f_v, f_prev, w_prev, half_ts_deg, q_lo, q_hi, sigma, elbow_off, wrist_frame,
-     thresholds, lo_rad, hi_rad, vmax_rad_s, margin_rad, lim_ts) = adm
+     thresholds, lo_rad, hi_rad, vmax_rad_s, margin_rad, lim_ts, file_len, lat_ref) = adm
     (phase, retract_to, retract_fz, rev_start_deg, rev_start_tick, rev_deg, rev_timeout,
      moved_n, depth_max, axial_n, kind, reverse, pd_st, pd_par, blank, rev_th, const_fz, wl,
      spin_up, torque_limit, rise_st, rise_a, rise_ts, min_slope, horizon) = feed
@@ -218,7 +218,8 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
         twist, _, qdot, _, _, _, _ = command(f_a, f_c, f_v, f_prev, wrench_h, feed, ff, jh,
                                              frames, qr, w_prev, half_ts_deg, q_lo, q_hi,
                                              sigma, elbow_off, wrist_frame, thresholds, lo_rad,
-                                             hi_rad, vmax_rad_s, margin_rad, lim_ts)
+                                             hi_rad, vmax_rad_s, margin_rad, lim_ts,
+                                             lateral_scale(depth, file_len, lat_ref))
         if sk.command_checks(qdot, twist, speed_lim, no, speed_lim, tip_cap, cmd_out) != 0 \
                 or ast[i_error] != 0.0 or not command_velocity(ast, lims, vel_cmd, queue_t, queue_v,
                                                          qdot, t_w, dead_time):

@@ -218,7 +218,8 @@ class DrillLoop:
         adms = (filt._a, filt._c, filt.v, filt._f_prev, adm._w_prev, adm._half_ts_deg,
                 adm._q_lo, adm._q_hi, adm.singular_sigma, adm.robot.elbow_offset_rad,
                 WRIST_CENTRE_FRAME, lim.thresholds, lim.lo_rad, lim.hi_rad, lim.vmax_rad_s,
-                lim.margin_rad, lim.ts)
+                lim.margin_rad, lim.ts, float(rt.cfg.file.length_mm),
+                float(rt.cfg.plan.lateral_free_ref_mm))
         feed = (STATES[phase], plan.retract_to_mm, plan.retract_fz_n, float(rev_start),
                 int(rev_tick), hpc.reversal_deg, hpc.reversal_timeout_s, th.patient_moved_n,
                 plan.working_length_mm + th.depth_margin_mm,

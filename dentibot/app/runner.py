@@ -93,7 +93,8 @@ def runtime_config(p: Protocol) -> RuntimeConfig:
                               axial_force_limit_n=lim.axial_force_limit_n,
                               stale_periods=lim.stale_periods.model_dump()),
         plan=TreatmentPlan(working_length_mm=p.phantom.working_length_mm,
-                           orifice_gap_mm=p.phantom.orifice_gap_mm),
+                           orifice_gap_mm=p.phantom.orifice_gap_mm,
+                           lateral_free_ref_mm=p.control.lateral_free_ref_mm),
         file=FileBeam(size=p.file.size, taper=p.file.taper, length_mm=float(p.file.length_mm)))
 
 

@@ -32,6 +32,16 @@ from dentibot.control.limits import JointLimiter, LimitReport, guarded_joints
 from dentibot.errors import ConfigError
 
 INF = math.inf
+#: A file free length (mm, chuck to canal) below which to raise the lateral axes' damping
+#: and mass as (this / free length)^3 on an arm that answers late
+#: (:func:`~dentibot.control.admittance_kernels.lateral_scale`): from 7 mm deep with a 25 mm
+#: file. Through a real Meca500's delay (16 ms in its queue, a 6.3 ms filter: the bench's
+#: recordings) and a rigidly held tooth, the unscaled lateral loop rang at 12 Hz from about
+#: 11 mm deep (12 mm free) and the main job faulted; scaled from 16 or 18 mm free it reaches
+#: the working length. Not the default: it stiffens the file's lateral compliance to a moving
+#: patient (thesis experiment 1 at full depth: peak force 5.5 N against 3.4-3.6 on the bench),
+#: and the bench, whose phantom sat in a compliant holder, did not ring (docs/sim-to-real.md).
+LATERAL_FREE_REF_MM = 18.0
 _ZERO6 = np.zeros(6)
 DEFAULT_TS = 0.002  # s, 500 Hz (thesis: ts = 0.002)
 AXES = ("x", "y", "z", "rx", "ry", "rz")
@@ -230,10 +240,13 @@ class AdmittanceController:
         return self.robot.tool_jacobian(q_deg, self.ref_point_h_mm, with_frames=True)
 
     def step(self, q_deg, wrench: np.ndarray, kin=None,
-             feedforward: np.ndarray | None = None, fz_n: float = 0.0) -> JointCommand:
+             feedforward: np.ndarray | None = None, fz_n: float = 0.0,
+             lateral: float = 1.0) -> JointCommand:
         """Advance one period from the joint angles ``q_deg`` with the wrench (N, N*m) plus
         ``fz_n`` along z_H (the desired insertion force, f_d of 4.4)
-        (:func:`~dentibot.control.admittance_kernels.command`).
+        (:func:`~dentibot.control.admittance_kernels.command`); ``lateral``: the lateral
+        axes' damping and mass raised that many times this period
+        (:func:`~dentibot.control.admittance_kernels.lateral_scale`).
 
         ``kin`` is ``self.kinematics(q_deg)`` if the caller already has it. ``feedforward``
         (mm/s, rad/s in {H} at the reference point) is added to the admittance's twist, after
@@ -248,5 +261,5 @@ class AdmittanceController:
             np.asarray(feedforward, dtype=float), jh, frames, np.asarray(q_deg, dtype=float),
             self._w_prev, self._half_ts_deg, self._q_lo, self._q_hi, self.singular_sigma,
             robot.elbow_offset_rad, WRIST_CENTRE_FRAME, lim.thresholds, lim.lo_rad,
-            lim.hi_rad, lim.vmax_rad_s, lim.margin_rad, lim.ts)
+            lim.hi_rad, lim.vmax_rad_s, lim.margin_rad, lim.ts, float(lateral))
         return JointCommand(q_next, qdot_deg_s, twist, (s_scale, speed_scale, guarded, sing))

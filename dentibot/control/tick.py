@@ -60,10 +60,12 @@ def sense(admittance: AdmittanceController, q_deg: np.ndarray, wrench_s_raw: np.
 
 
 def admittance_command(admittance: AdmittanceController, q_deg, wrench_h: np.ndarray,
-                       fz_n: float, kin, feedforward: np.ndarray | None = None) -> JointCommand:
+                       fz_n: float, kin, feedforward: np.ndarray | None = None,
+                       lateral: float = 1.0) -> JointCommand:
     """One admittance step driven by ``wrench_h`` plus the desired insertion force ``fz_n``
-    along the file axis z_H (f_d of 4.4), with an optional ``feedforward`` twist in {H}."""
-    return admittance.step(q_deg, wrench_h, kin, feedforward, fz_n)
+    along the file axis z_H (f_d of 4.4), with an optional ``feedforward`` twist in {H} and
+    the lateral axes' damping raised ``lateral`` times."""
+    return admittance.step(q_deg, wrench_h, kin, feedforward, fz_n, lateral)
 
 
 @dataclass(frozen=True)

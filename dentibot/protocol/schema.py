@@ -25,6 +25,7 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, Field, model_validator
 
+from dentibot.control.admittance import LATERAL_FREE_REF_MM
 from dentibot.control.feedrate import FILE_STRENGTH_MNM
 from dentibot.yamlfile import StrictModel
 
@@ -68,6 +69,13 @@ class Strict(StrictModel):
 class ControlSpec(Strict):
     rate_hz: float = Field(500.0, ge=10.0, le=5000.0,
                            description="control rate (Hz); thesis 500 Hz (ts = 2 ms)")
+    lateral_free_ref_mm: float = Field(
+        0.0, ge=0.0, le=60.0,
+        description="the file's free length (mm, its length less the depth) below which the "
+                    "lateral admittance's damping rises as (this / free length)^3, the "
+                    "stiffness the handpiece feels sideways: keeps the lateral loop from "
+                    "ringing deep in a rigidly held tooth through a real arm's delay "
+                    f"(the bench-fitted arm: {LATERAL_FREE_REF_MM:g}); 0: never (the default)")
 
 
 class ToolSpec(Strict):

@@ -8,10 +8,12 @@ latched fault of the same tick (:meth:`~dentibot.runtime.control_task.Runtime.ti
 from __future__ import annotations
 
 import asyncio
+import math
 
 import numpy as np
 import structlog
 
+from dentibot.control.admittance_kernels import lateral_scale
 from dentibot.control.canal_axis import CanalAxisServo
 from dentibot.control.tick import admittance_command
 from dentibot.states.behaviours import feed_force_n
@@ -68,7 +70,10 @@ async def arm_command(rt, est):
     if turn is not None and ff is None:   # a moving tooth bends the file too: not a tilt
         ff = turn
     cmd = admittance_command(rt.admittance, est.q_deg, est.wrench_h,
-                             feed_force_n(mode, rt.ctx, rt.cfg.plan), rt.chain, ff)
+                             feed_force_n(mode, rt.ctx, rt.cfg.plan), rt.chain, ff,
+                             lateral_scale(math.nan if est.depth_mm is None else est.depth_mm,
+                                           rt.cfg.file.length_mm,
+                                           rt.cfg.plan.lateral_free_ref_mm))
     bad = rt.supervisor.check_command(cmd.qdot_deg_s, cmd.twist, rt.speed_limits, tooth_ff)
     if bad:
         rt.pending.extend(("fault", str(f)) for f in bad)

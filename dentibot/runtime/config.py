@@ -147,6 +147,11 @@ class TreatmentPlan:
     # Self-alignment's orientation loop (control.canal_axis): the handpiece turns to the
     # canal's direction read from the file's bending. None: the thesis's admittance alone.
     axis_servo: AxisServoParams | None = field(default_factory=AxisServoParams)
+    # The lateral admittance's damping and mass rise as (L_ref / L)^3 once the file's free
+    # part L (its length less the depth) is shorter than this (mm; 0, the default: never):
+    # the stiffness the handpiece feels sideways grows so. For an arm that answers late, with
+    # a rigidly held tooth: control.admittance.LATERAL_FREE_REF_MM.
+    lateral_free_ref_mm: float = 0.0
 
     def __post_init__(self) -> None:
         _check("treatment.working_length_mm", self.working_length_mm, 1.0, 30.0, "mm")
@@ -156,6 +161,7 @@ class TreatmentPlan:
         _check("treatment.retract_fz_n", self.retract_fz_n, 0.05, 2.0, "N")
         _check("treatment.retract_to_mm", self.retract_to_mm, -10.0, 0.0, "mm")
         _check("treatment.orifice_gap_mm", self.orifice_gap_mm, 0.0, 20.0, "mm")
+        _check("treatment.lateral_free_ref_mm", self.lateral_free_ref_mm, 0.0, 60.0, "mm")
 
 
 @dataclass(frozen=True)

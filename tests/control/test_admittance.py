@@ -180,3 +180,39 @@ def test_a_twist_beyond_the_joints_speeds_is_scaled_uniformly_and_reported():
     assert ratio.max() == pytest.approx(1.0, rel=1e-9)
     assert cmd.limits.limited and 0.0 < cmd.limits.speed_scale < 1.0
     assert cmd.limits.singularity is not None
+
+
+def test_the_lateral_axes_stiffen_with_the_file_s_shorter_free_part():
+    """The scale is (L_ref / L)^3 below L_ref, L = file length - depth (a cantilever's
+    lateral stiffness, 3EI/L^3), else 1; none without a depth or with the schedule off."""
+    from dentibot.control.admittance_kernels import lateral_scale
+
+    assert lateral_scale(5.0, 25.0, 18.0) == 1.0                 # 20 mm free
+    assert lateral_scale(7.0, 25.0, 18.0) == 1.0                 # 18 mm: the edge
+    assert lateral_scale(13.0, 25.0, 18.0) == pytest.approx(1.5 ** 3)        # 12 mm free
+    assert lateral_scale(16.0, 25.0, 18.0) == pytest.approx(8.0)             # 9 mm free
+    assert lateral_scale(math.nan, 25.0, 18.0) == 1.0
+    assert lateral_scale(16.0, 25.0, 0.0) == 1.0
+    assert lateral_scale(40.0, 25.0, 18.0) == pytest.approx(1000.0)  # capped at 0.1 L_ref
+
+
+def test_a_lateral_scale_divides_the_lateral_gain_and_keeps_the_time_constant():
+    """Raising b and m of x and y s times: the steady velocity k f / (b s) there, reached
+    with the same time constant m/b; z (and the rotations) untouched."""
+    from dentibot.control.admittance_kernels import filter_step
+
+    p = AdmittanceParams(k=500.0, b=(80.0,) * 6, m=(8.0,) * 6)       # m/b = 0.1 s
+    ts, s = 0.002, 4.0
+    filt = AdmittanceFilter(p, ts)
+    f = np.array([1.0, -2.0, 1.0, 0.0, 0.0, 0.0])
+    out, trace = np.empty(6), []
+    for _ in range(5000):                                             # 10 s: 100 tau
+        filter_step(filt._a, filt._c, filt.v, filt._f_prev, f, 0.0, out, s)
+        trace.append(out.copy())
+    assert out[0] == pytest.approx(500.0 / (80.0 * s), rel=1e-9)
+    assert out[1] == pytest.approx(-2.0 * 500.0 / (80.0 * s), rel=1e-9)
+    assert out[2] == pytest.approx(500.0 / 80.0, rel=1e-9)
+    # one time constant (50 ticks) in: 1 - e^-1 of the way on x, as on z without the scale
+    x = np.array(trace)
+    assert x[49, 0] / x[-1, 0] == pytest.approx(x[49, 2] / x[-1, 2], rel=1e-12)
+    assert x[49, 2] / x[-1, 2] == pytest.approx(1.0 - math.exp(-1.0), abs=0.02)
