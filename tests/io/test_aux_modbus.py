@@ -27,6 +27,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 from dentibot.errors import ConfigError, DeviceFault, ProtocolError
 from dentibot.io import AuxIO
 from dentibot.io.aux_modbus import AuxModbusDriver, WatchdogOverwritten
+from dentibot.io.tasks import cancel_until_done
 from dentibot.io.aux_registers import (
     INDICATORS,
     REGISTER_MAP,
@@ -735,10 +736,22 @@ async def test_a_second_client_switching_the_watchdog_off_is_a_latched_fault():
                 await drv.read()
             drv.clear_watchdog_fault()
             await sample_where(drv, lambda s: True)
-            # another client feeding the watchdog (it would hide DentiBot's death) too
-            value = drv._fed_value
-            await other.write_register(6, (value + 1000) & 0xFFFF or 1, device_id=1)
-            exc = await fault_within(drv, timeout=2.0)
+            # another client feeding the watchdog (it would hide DentiBot's death) too; it
+            # insists, as a panel would: one write that lands while the driver's own feed is
+            # on its way is overwritten by that feed before any read-back sees it
+            await _wait_for(lambda: drv._fed_value is not None)    # no feed in flight
+            foreign = (drv._fed_value + 1000) & 0xFFFF or 1
+
+            async def feed_too() -> None:
+                while True:
+                    await other.write_register(6, foreign, device_id=1)
+                    await asyncio.sleep(0.01)
+
+            feeder = asyncio.get_running_loop().create_task(feed_too())
+            try:
+                exc = await fault_within(drv, timeout=2.0)
+            finally:
+                await cancel_until_done(feeder, reraise=False)
             assert isinstance(exc, WatchdogOverwritten) and "someone else feeds" in str(exc)
         finally:
             other.close()

@@ -699,24 +699,36 @@ async def test_lost_host_heartbeat_stops_the_file_on_the_quick_stop_ramp():
 
 
 async def test_a_silent_control_path_withholds_the_heartbeat_while_the_file_turns():
+    """The product's 30 ms consumer, the host and the simulated drive in this process's one
+    event loop: a stall of the loop past 30 ms while the test ticks is a lost host for the
+    drive as well (rightly). The driver measures its longest heartbeat gap; a run whose
+    ticking phase broke on such a gap, not on anything the driver did, is tried again (three
+    runs at most)."""
     feed_timeout = 0.05
-    async with rig(feed_timeout_s=feed_timeout, consumer_ms=DEFAULT_CONSUMER_MS) as r:
-        drv, node, hp = r.drv, r.node, r.world.handpiece
-        await drv.set_velocity(60.0)
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < 0.3:                   # ticking: read every 2 ms
-            if drv.received:
-                await drv.read()
-            await asyncio.sleep(0.002)
-        assert node.heartbeat_errors == 0 and drv.withheld == 0
-        last_feed = drv._fed_t              # the control task stops; the loop runs on
-        assert await until(lambda: node.state is State.FAULT, timeout=2.0)
-        assert drv.withheld > 0 and node.error_code == co.HEARTBEAT_ERROR_CODE
-        assert await until(lambda: abs(hp.omega_rpm) < 1.0)
-        bound = feed_timeout + stop_bound_s(DEFAULT_CONSUMER_MS / 1000,
-                                            DEFAULT_QUICK_STOP_FILE_RPM_S)
-        assert time.monotonic() - last_feed <= bound
-        assert drv.syncs_sent > 0 and drv._sync_task is not None   # only the beat stopped
+    for attempt in range(3):
+        async with rig(feed_timeout_s=feed_timeout, consumer_ms=DEFAULT_CONSUMER_MS) as r:
+            drv, node, hp = r.drv, r.node, r.world.handpiece
+            await drv.set_velocity(60.0)
+            drv.host_heartbeat_gap_max_s = 0.0
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < 0.3:               # ticking: read every 2 ms
+                if drv.received:
+                    await drv.read()
+                await asyncio.sleep(0.002)
+            stalled = drv.host_heartbeat_gap_max_s >= 0.8 * DEFAULT_CONSUMER_MS / 1000
+            if (node.heartbeat_errors or drv.withheld) and stalled and attempt < 2:
+                continue
+            assert node.heartbeat_errors == 0 and drv.withheld == 0, \
+                drv.host_heartbeat_gap_max_s
+            last_feed = drv._fed_t          # the control task stops; the loop runs on
+            assert await until(lambda: node.state is State.FAULT, timeout=2.0)
+            assert drv.withheld > 0 and node.error_code == co.HEARTBEAT_ERROR_CODE
+            assert await until(lambda: abs(hp.omega_rpm) < 1.0)
+            bound = feed_timeout + stop_bound_s(DEFAULT_CONSUMER_MS / 1000,
+                                                DEFAULT_QUICK_STOP_FILE_RPM_S)
+            assert time.monotonic() - last_feed <= bound
+            assert drv.syncs_sent > 0 and drv._sync_task is not None   # only the beat stopped
+            return
 
 
 async def test_a_file_at_rest_keeps_its_heartbeat_without_feeds():
