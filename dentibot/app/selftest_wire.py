@@ -429,7 +429,8 @@ async def _run_runtime_fault(name: str, seed: int, settle_s: float,
                 k = next((i for i in range(k0, len(rows)) if rows[i]["state"] == "fault"),
                          None)
                 t_det = None if k is None else arrived[k]
-                if isinstance(foreign, _ForeignModbusClient) and foreign.first_written_at:
+                if (isinstance(foreign, _ForeignModbusClient)
+                        and foreign.first_written_at is not None):
                     t0 = foreign.first_written_at   # the registers overwritten from then
                 await proc.run_for(0.2)             # the safe state holds, the file stops
                 final = rt.state

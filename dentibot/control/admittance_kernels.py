@@ -66,7 +66,7 @@ def command(a: np.ndarray, c: np.ndarray, v: np.ndarray, f_prev: np.ndarray,
             frames: np.ndarray, q_deg: np.ndarray, w_prev: np.ndarray, half_ts_deg: float,
             q_lo: np.ndarray, q_hi: np.ndarray, singular_sigma: float, elbow_offset: float,
             wrist_frame: int, thresholds: np.ndarray, lo_rad: np.ndarray, hi_rad: np.ndarray,
-            vmax_rad_s: np.ndarray, margin_rad: float, ts: float, lateral: float = 1.0):
+            vmax_rad_s: np.ndarray, margin_rad: float, ts: float, lateral: float):
     """One period of fig 4.2: :func:`filter_step` on ``wrench`` + ``fz`` z_H (the lateral
     axes' gain divided by ``lateral``), plus the ``feedforward`` twist (zeros for none), then
     :func:`joint_step`; ``w_prev`` (the last joint rates, rad/s) is updated in place.
@@ -97,11 +97,8 @@ def warm_up() -> None:
     q, one = np.zeros(6), np.ones(6)
     th = np.array([5.0, 20.0, 0.03, 0.17, 0.03, 0.17])
     filter_step(q, q, np.zeros(6), np.zeros(6), q, 0.0, np.zeros(6))
-    filter_step(q, q, np.zeros(6), np.zeros(6), q, 0.0, np.zeros(6), 1.0)
-    for lateral in ((), (1.0,)):
-        command(q, q, np.zeros(6), np.zeros(6), q, 0.0, q, np.eye(6), dh_frames(dh, q), q,
-                np.zeros(6), 0.06, -one, one, 0.05, 0.0, 4, th, -one, one, one, 0.1, 0.002,
-                *lateral)
+    command(q, q, np.zeros(6), np.zeros(6), q, 0.0, q, np.eye(6), dh_frames(dh, q), q,
+            np.zeros(6), 0.06, -one, one, 0.05, 0.0, 4, th, -one, one, one, 0.1, 0.002, 1.0)
     lateral_scale(1.0, 25.0, 18.0)
 
 

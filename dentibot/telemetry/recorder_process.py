@@ -284,8 +284,9 @@ class RecorderProcess(RecorderBase):
 
     def record_block(self, block: TickBlock) -> None:
         """Hand a block of tick rows over (:class:`~dentibot.telemetry.blocks.TickBlock`, in
-        its wire form, after anything still in the batch): the same as :meth:`record` of each of its rows, with one wait for room
-        for all of them (a block larger than the budget goes in parts)."""
+        its wire form, after anything still in the batch): the same as :meth:`record` of
+        each of its rows, with one wait for room for all of them (a block larger than the
+        budget goes in parts)."""
         if self._dead is not None or self._closed:
             self._raise_dead()
         if self._in_parts_or_empty(block):
@@ -460,6 +461,11 @@ def _picklable(item: tuple[str, Any], path: Path) -> bool:
 
 # -- the child process -----------------------------------------------------------------------
 
+def _flushed(settled: int, counters: dict[str, int]) -> bytes:
+    """A flush's report, packed (read back by :func:`_ack`)."""
+    return _FLUSHED + _FLUSHED_BODY.pack(settled, *(counters[n] for n in CHILD_COUNTERS))
+
+
 def _ack(data: bytes) -> tuple:
     """A report of the child as the tuple it stands for (a packed flush, or a pickle)."""
     if data[:1] == _FLUSHED:
@@ -488,16 +494,16 @@ def _child_main(rows: Connection, acks: Connection) -> None:
         configure_default()
     lock = threading.Lock()                  # the writer thread reports flushes too
 
-    def report(msg: tuple) -> None:
+    def send(data: bytes) -> None:
         with lock:
-            acks.send(msg)
+            acks.send_bytes(data)
+
+    def report(msg: tuple) -> None:
+        send(pickle.dumps(msg, _PICKLE))
 
     def flushed(rec: McapRecorder) -> None:
         try:
-            data = _FLUSHED + _FLUSHED_BODY.pack(rec._settled,  # noqa: SLF001 - our own
-                                                 *[getattr(rec, n) for n in CHILD_COUNTERS])
-            with lock:
-                acks.send_bytes(data)
+            send(_flushed(rec._settled, _counters(rec)))   # noqa: SLF001 - our own
         except OSError:
             pass                                 # the parent is gone: the main loop sees it
 

@@ -180,7 +180,8 @@ def test_a_flush_report_crosses_packed_and_reads_as_its_tuple():
     from dentibot.telemetry import recorder_process as rp
 
     counters = {name: 10**12 + i for i, name in enumerate(rp.CHILD_COUNTERS)}
-    data = rp._FLUSHED + rp._FLUSHED_BODY.pack(4321, *counters.values())
+    data = rp._flushed(4321, counters)
+    assert data[:1] == b"F" and len(data) == 1 + 8 * (1 + len(rp.CHILD_COUNTERS))
     assert rp._ack(data) == ("flushed", 4321, counters)
     dead = ("dead", TelemetryError("x.mcap", "disk full"), counters)
     back = rp._ack(pickle.dumps(dead))
