@@ -18,8 +18,8 @@ compiled loop, :mod:`dentibot.app.drill_loop`, as it keeps any caller's tap).
   ``--repeats`` times (the median of each is reported; the machine is shared);
 - ``writer_cpu_us_per_tick``: CPU time of the recorder's writer (its process, or its thread
   for an in-process recorder) during the drill step, and ``main_cpu_us_per_tick`` that of the
-  control thread (wall minus it: time the control thread waited, for the interpreter lock or
-  the writer's back-pressure);
+  control process (the control task's thread and the relay's that hands the compiled ticks'
+  rows over; an in-process recorder's writer thread too);
 - ``breakdown``: one more run with ``time.perf_counter_ns`` hooks around each component
   (exclusive time: a component's time excludes the hooked components it calls), us per tick:
   ``drill_kernel`` (the compiled drilling ticks: every law of those ticks, their rows' numbers
@@ -226,12 +226,12 @@ class _DrillTap:
         if self.tick0 < 0:
             if self.hooks is not None:
                 self.hooks.ns.clear()
-            self.cpu0 = time.thread_time()
+            self.cpu0 = time.process_time()
             self.wcpu0 = self._writer_cpu_s()
             self.t0, self.tick0 = time.perf_counter_ns(), tick
         else:
             self.t1, self.tick1 = time.perf_counter_ns(), tick
-            self.cpu1 = time.thread_time()
+            self.cpu1 = time.process_time()
             self.wcpu1 = self._writer_cpu_s()
             if self.hooks is not None:
                 self.ns = dict(self.hooks.ns)
@@ -320,11 +320,11 @@ def print_report(r: dict) -> None:
     print(f"real lock-step tick: main job's drill step ({what}, {r['ticks']} ticks), "
           f"CLI path, median of {r['repeats']}:")
     print(f"  recorder on : {r['us_per_tick_recorder']:7.1f} us/tick, "
-          f"{r['speed_factor_recorder']:5.1f}x real time; control thread CPU "
+          f"{r['speed_factor_recorder']:5.1f}x real time; control process CPU "
           f"{r['main_cpu_us_per_tick_recorder']:.1f} us/tick, writer CPU "
           f"{r['writer_cpu_us_per_tick'] or 0:.1f} us/tick")
     print(f"  recorder off: {r['us_per_tick']:7.1f} us/tick, {r['speed_factor']:5.1f}x real "
-          f"time; control thread CPU {r['main_cpu_us_per_tick']:.1f} us/tick")
+          f"time; control process CPU {r['main_cpu_us_per_tick']:.1f} us/tick")
     print(f"  on / off: x{r['recorder_ratio']:.2f} (each run: "
           f"{', '.join(f'{x:.2f}' for x in r['recorder_ratios'])})")
     b = r.get("breakdown")

@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from dentibot.app import relay_kernels as rk
 from dentibot.control.admittance_kernels import command, lateral_scale
 from dentibot.control.canal_axis_kernels import feed_scale
 from dentibot.control.canal_axis_kernels import step as axis_step
@@ -90,9 +91,9 @@ def _restore(saved, arrays):
         a[:] = saved[i, :a.shape[0]]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world, reads,
-                sup, ctl, adm, feed, servo, arm_cmd, truth, out, rows, last, frames_out,
+                sup, ctl, adm, feed, servo, arm_cmd, truth, relay, out, rows, last, frames_out,
                 jh_out):
     """Run up to ``n_max`` ticks of feeding from control tick ``k0``, the world at step
     ``steps0`` (time ``t0``). ``origins[i]``: the canal orifice in {0} at world step
@@ -115,7 +116,14 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
     what the canal's completeness (eq 6.1) takes: its initial lumen, stained widths, stain
     depth, a work buffer, the initial red area, the index of its lumen's version in the
     canal's state, and the completeness at the first tick. It is computed again only when the
-    lumen changed, as :meth:`~dentibot.sim.world.World.completeness` is."""
+    lumen changed, as :meth:`~dentibot.sim.world.World.completeness` is.
+
+    ``relay``: :meth:`~dentibot.app.relay.Relay.kernel_args` (or its ``off_args``): each
+    group of ``every`` ticks whose rows are written is published there (its compute time,
+    the waits left out, with it), and no tick runs past the relay's limit until the relay
+    has handed the rows before it over; an abort stops the call before its next tick. The
+    call runs without the interpreter lock (``nogil``), so that the relay's thread can hand
+    over while it computes."""
     (ws, wp, F, dh_w, ast, ap, lims, q, qd, vel_cmd, target, queue_t, queue_v, cst, cp, R, h,
      s_arr, kappa, b0, b1, b2, cout, hs, hpp, hnoise, ss, sp, snoise) = world
     (enc_res, i_origin, i_tip, i_omega, i_pos, i_current, i_torque, i_stalled, i_last0,
@@ -146,7 +154,11 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
     no = not yes
     last_frames, last_jh = frames_out, jh_out
     ran, stepped = n_max, max(n_max - 1, 0)
+    rk.begin(relay)
     for i in range(n_max):
+        if not rk.hold(relay, i):             # the relay failed: stop before the tick
+            ran = stepped = i
+            break
         _keep(saved, state)
         k = k0 + i
         seq = steps0 + i
@@ -256,6 +268,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
             r[R_COMPLETENESS] = completeness
         last[LAST_SCALAR], last[LAST_SCALAR + 1], last[LAST_SCALAR + 2] = norm, pos, fz
         last_frames, last_jh = frames, jh
+        rk.publish(relay, i)                  # the rows of a group are written
         if i == n_max - 1:
             break
         # the world's next step (the clock's, between two ticks)
@@ -274,4 +287,5 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
     if ran:
         frames_out[:] = last_frames
         jh_out[:] = last_jh
+    rk.end(relay)
     return ran, stepped, code

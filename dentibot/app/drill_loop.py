@@ -32,9 +32,12 @@ pre-clinical experiment's trace).
 
 Where rows are read, ``on_block(block)`` (``Runtime.on_block``) replaces the ``sink`` for the
 ticks run here: each call's rows as one :class:`~dentibot.telemetry.blocks.TickBlock`, their
-numbers written by the compiled ticks, their compute time the call's shared out. A call then
-runs at most ``block_ticks`` ticks (the runner gives half a recorder's budget of ticks at
-risk, as its writer flushes).
+numbers written by the compiled ticks, their compute time the call's shared out. With
+``block_ticks`` below :data:`CHUNK` (the runner gives half a recorder's budget of ticks at
+risk, as its writer flushes), the rows leave in blocks of at most ``block_ticks`` ticks while
+the call goes on: a :class:`~dentibot.app.relay.Relay`'s thread hands each block over as the
+compiled ticks finish it, and the call computes at most the next block meanwhile
+(``relay=False``: each call runs one block, and hands it over when it returns).
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ import time
 import numpy as np
 
 from dentibot.app import drill_kernels as dk
+from dentibot.app.relay import Relay
 from dentibot.control.kinematics import WRIST_CENTRE_FRAME, euler_xyz_deg
 from dentibot.control.torque_rise import TorqueRise
 from dentibot.runtime.clock import LockStepClock
@@ -85,7 +89,7 @@ class DrillLoop:
     docstring); ``gate`` and ``clock`` are the procedure's."""
 
     def __init__(self, world, gate, clock: LockStepClock, every: int | None = None,
-                 block_ticks: int = CHUNK) -> None:
+                 block_ticks: int = CHUNK, relay: bool = True) -> None:
         self.world = world
         self.gate = gate
         self.clock = clock
@@ -94,6 +98,11 @@ class DrillLoop:
         self.every = every
         #: most ticks per call when the rows are read (a recorder's budget of ticks at risk)
         self.block_ticks = max(2, min(CHUNK, int(block_ticks)))
+        #: hands a call's blocks over as they are computed (made at the first call that
+        #: needs it)
+        self.relay: Relay | None = None
+        self._relaying = relay and self.block_ticks < CHUNK
+        self._last_block: TickBlock | None = None
         self.out = np.zeros((CHUNK, len(dk.OUT_FIELDS)))
         self.rows = np.zeros((CHUNK, WIDTH))
         self._phantom_euler = euler_xyz_deg(world.phantom_pose[:3, :3])
@@ -147,7 +156,7 @@ class DrillLoop:
             n = min(n, due)
         if self.every:
             n = min(n, -rt.ticks % self.every + 1)
-        if rt.sink is not None:
+        if rt.sink is not None and not self._relaying:
             n = min(n, self.block_ticks)
         k = max(hp.hs[hpk.S["k"]], w.sensor.ss[ftk.S["k"]])
         n = min(n, int(min(HP_NOISE_BLOCK, FT_NOISE_BLOCK) - k))
@@ -233,14 +242,26 @@ class DrillLoop:
                  canal._red_buf, float(canal.red0), ck.S["version"],
                  float(w.completeness()) if row_on else 0.0)
         k0 = rt.ticks
+        relay = self._relay(rt, k0, n_max, t_start)
         n, steps, code = dk.drill_ticks(n_max, k0, steps0, w.t, ts, origins, axis_p,
                                         tuple(state), saved, world_arrays, reads, sups, ctl,
                                         adms, feed, servos,
                                         (arm._p.vel_dead_time_s, sim_arm._ERROR), truth,
+                                        Relay.off_args() if relay is None
+                                        else relay.kernel_args(),
                                         self.out, self.rows, self.last, self.frames, self.jh)
+        handed, failed = 0, None
+        if relay is not None:
+            try:
+                handed = relay.finish()
+            except Exception as exc:  # noqa: BLE001 - raised once the ticks are accounted for
+                failed = exc
         if not n:
+            if failed is not None:
+                raise failed
             return 0
-        self._after(rt, n, steps, code, k0, steps0, time.perf_counter() - t_start)
+        self._after(rt, n, steps, code, k0, steps0, time.perf_counter() - t_start, handed,
+                    failed)
         if steps == n:                # the next tick is due: the control task's own
             t0 = time.perf_counter()
             await rt.tick(0.0)
@@ -248,9 +269,43 @@ class DrillLoop:
             n += 1
         return n
 
+    def _relay(self, rt, k0: int, n_max: int, t_start: float) -> Relay | None:
+        """The relay, ready for a call of ``n_max`` ticks from tick ``k0``, or None when the
+        call hands its rows over itself."""
+        if rt.sink is None or not self._relaying or n_max <= self.block_ticks:
+            return None
+        if self.relay is None:
+            self.relay = Relay(self.block_ticks, CHUNK // self.block_ticks + 1)
+        prep_ns = int((time.perf_counter() - t_start) * 1e9)
+
+        def hand(start: int, stop: int, busy_ns: int) -> None:
+            # the first block's compute time takes the call's preparation too
+            ns = busy_ns + (prep_ns if start == 0 else 0)
+            self._hand_over(rt, k0, start, stop, ns / (stop - start) / 1e3)
+        self.relay.start(hand)
+        return self.relay
+
+    def _hand_over(self, rt, k0: int, start: int, stop: int, compute_us: float) -> None:
+        """Rows ``start`` to ``stop`` of the call from tick ``k0``, as one block, to
+        ``rt.on_block``."""
+        cols = self.rows[start:stop].copy()
+        cols[:, COL["compute_us"]] = compute_us
+        block = TickBlock(cols, k0 + start, rt.ts, rt.step_name, rt.treatment.state,
+                          rt.cfg.plan.working_length_mm, rt.ctx.reversals, self._phantom_euler)
+        rt.on_block(block)
+        self._last_block = block
+
+    def close(self) -> None:
+        """End the relay's thread, if any (also done when the loop is forgotten)."""
+        if self.relay is not None:
+            self.relay.close()
+            self.relay = None
+
     def _after(self, rt, n: int, steps: int, code: int, k0: int, steps0: int,
-               wall_s: float) -> None:
-        """The Python side brought up to date after ``n`` ticks ran here."""
+               wall_s: float, handed: int = 0, failed: BaseException | None = None) -> None:
+        """The Python side brought up to date after ``n`` ticks ran here, the first
+        ``handed`` of them handed over by the relay (whose failure, if any, is raised once
+        the rest is up to date)."""
         w, last, row = self.world, self.last, self.rows[n - 1]
         norm, pos, fz = last[dk.LAST_SCALAR:].tolist()
         tau, cur, rpm, depth, fz_star = row[[_TAU, _CUR, _RPM, _DEPTH, _FZ_STAR]].tolist()
@@ -276,12 +331,14 @@ class DrillLoop:
             w.fracture_from_step(code)
         if rt.on_ticks is not None:
             rt.on_ticks(self.out, n, k0, rt.treatment.state)
+        if failed is not None:
+            raise failed
         if rt.sink is not None:
-            cols = self.rows[:n].copy()
-            cols[:, COL["compute_us"]] = wall_s / n * 1e6    # the call's, shared out
-            block = TickBlock(cols, k0, rt.ts, rt.step_name, rt.treatment.state,
-                              rt.cfg.plan.working_length_mm, rt.ctx.reversals,
-                              self._phantom_euler)
-            rt.on_block(block)
-            rt.last_row = block.row(-1)
+            if handed < n:
+                # the call's compute time shared out; after a relay, the ticks after its
+                # last block take what the call spent on them
+                us = (wall_s / n * 1e6 if not handed
+                      else self.relay.tail_ns / (n - handed) / 1e3)
+                self._hand_over(rt, k0, handed, n, us)
+            rt.last_row = self._last_block.row(-1)
 

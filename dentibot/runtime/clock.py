@@ -225,6 +225,7 @@ class LockStepClock(Clock):
 
     def start(self) -> None:
         self._k = 0
+        self._next_yield = self._yield_every
         self._halted = False
         if self._pace is not None:
             self._pace.start()
@@ -301,8 +302,11 @@ class LockStepClock(Clock):
             lateness = await self._pace.wait_next()
             self.skipped = self._pace.skipped
             return lateness
-        if self._k % self._yield_every == 0:
-            await asyncio.sleep(0)   # let the other tasks (UI, operator commands) run
+        if self._k >= self._next_yield:
+            # let the other tasks (UI, operator commands) run: every ``yield_every`` ticks,
+            # and after each call of the compiled drilling ticks (which steps many at once)
+            self._next_yield = self._k + self._yield_every
+            await asyncio.sleep(0)
         return 0.0
 
 

@@ -103,7 +103,8 @@ steps:
 
 def _recorded(tmp_path, compiled: bool, monkeypatch) -> tuple:
     """A recorded run of :data:`RECORDED`: its summary, progress, the recording's messages
-    (each /tick without its compute time) and how many ticks went over in blocks."""
+    (each /tick without its compute time), how many ticks went over in each block, and the
+    compiled calls' largest number of ticks with the blocks handed over as it runs."""
     import orjson
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
@@ -112,7 +113,17 @@ def _recorded(tmp_path, compiled: bool, monkeypatch) -> tuple:
     from dentibot.protocol.loader import load_protocol
     from dentibot.telemetry.cdr import TICK_CODEC
 
-    in_blocks = []
+    from dentibot.app import drill_kernels as dk
+
+    in_blocks, relayed = [], [0]
+    ticks = dk.drill_ticks
+
+    def counted(n_max, *args):
+        relay = args[17]
+        if relay[0]:
+            relayed[0] = max(relayed[0], n_max)
+        return ticks(n_max, *args)
+    monkeypatch.setattr(dk, "drill_ticks", counted)
     block = ProtocolRunner._block
     monkeypatch.setattr(ProtocolRunner, "_block",
                         lambda self, b: (in_blocks.append(len(b)), block(self, b)))
@@ -145,7 +156,7 @@ def _recorded(tmp_path, compiled: bool, monkeypatch) -> tuple:
             if channel.topic == "/tick":
                 obj.pop("compute_us")
             messages.append((channel.topic, message.log_time - start, _relative(obj, start)))
-    return result.summary, progress, messages, in_blocks
+    return result.summary, progress, messages, in_blocks, relayed[0]
 
 
 def _relative(obj, start_ns: int):
@@ -168,11 +179,12 @@ def test_a_recorded_run_hands_its_drilling_rows_over_in_blocks(tmp_path, monkeyp
     # the kernels the rows' numbers take, compiled at import for the types the runs pass
     kernels = (kk.tool_euler_deg, kk.euler_xyz_deg, ck.red_area)
     before = [list(k.signatures) for k in kernels]
-    summary, progress, messages, blocks = _recorded(tmp_path, True, monkeypatch)
-    again, progress_again, messages_again, none = _recorded(tmp_path, False, monkeypatch)
+    summary, progress, messages, blocks, relayed = _recorded(tmp_path, True, monkeypatch)
+    again, progress_again, messages_again, none, _ = _recorded(tmp_path, False, monkeypatch)
     assert [list(k.signatures) for k in kernels] == before
     assert not none and sum(blocks) > 2000          # most of the drilling went in blocks
     assert max(blocks) <= 25                        # half the recorder's budget of 50 ticks
+    assert relayed > 25                             # ... from calls of more ticks than that
     assert summary.reversals > 0 and summary == again
     assert progress == progress_again
     assert {"/tick", "/tf", "/scene", "/events"} <= {topic for topic, _, _ in messages}

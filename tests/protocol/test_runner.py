@@ -76,10 +76,11 @@ async def test_cancel_stops_safely_and_still_writes_recording_and_summary(tmp_pa
     runner = ProtocolRunner(parse_protocol(SHORT.replace("duration_s: 8", "duration_s: 60")),
                             recording=path)
     task = asyncio.create_task(runner.run())
-    while not runner.rt.treatment.in_state("treating"):
-        await asyncio.sleep(0.01)
-    for _ in range(20):           # let it drill into the canal a little
-        await asyncio.sleep(0.01)
+    def depth() -> float:
+        row = runner.rt.last_row
+        return row["true_depth_mm"] if row is not None else -1.0
+    while not (runner.rt.treatment.in_state("treating") and depth() > 0.3):
+        await asyncio.sleep(0.01)     # drilling into the canal (the drill lasts 60 s)
     task.cancel()
     with pytest.raises(asyncio.CancelledError):
         await task

@@ -113,6 +113,30 @@ async def test_lockstep_ticks_left_and_steps_taken_by_their_owner():
     assert LockStepClock(lambda: None, 0.002, paced=True).ticks_left() == 0
 
 
+async def test_lockstep_clock_serves_the_other_tasks_every_ten_ticks_and_after_bulk_steps():
+    clock = LockStepClock(lambda: None, 0.002, yield_every=10)
+    turns = [0]
+
+    async def other():
+        while True:
+            turns[0] += 1
+            await asyncio.sleep(0)
+    task = asyncio.create_task(other())
+    await asyncio.sleep(0)
+    served = []
+    for _ in range(30):                   # tick by tick: a turn every ten ticks
+        before = turns[0]
+        await clock.wait_next()
+        served.append(turns[0] > before)
+    assert served.count(True) == 3 and served[9] and served[19] and served[29]
+    for n in (256, 37, 25):               # many ticks stepped at once: a turn after each
+        clock.stepped(n)
+        before = turns[0]
+        await clock.wait_next()
+        assert turns[0] > before
+    task.cancel()
+
+
 def test_lockstep_stats_in_bulk():
     s = DeadlineStats(0.002, deadlines=False)
     s.add_lockstep(100, 0.001)
