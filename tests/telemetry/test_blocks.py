@@ -19,7 +19,7 @@ from telemetry_helpers import GatedStream
 from dentibot.telemetry import McapRecorder, mcap_messages
 from dentibot.telemetry.blocks import COL, COLUMNS, WIDTH, TickBlock, tick_row
 from dentibot.telemetry.cdr import TICK_CODEC
-from dentibot.telemetry.recorder import TelemetryOverflow
+from dentibot.telemetry.recorder import ZSTD_LEVEL, TelemetryOverflow
 from dentibot.telemetry.recorder_process import RecorderProcess
 from dentibot.telemetry.schema import TICK_FIELDS
 from dentibot.telemetry.summary import SummaryAccumulator
@@ -230,11 +230,12 @@ def test_many_messages_at_once_make_the_librarys_file(chunk_size, monkeypatch):
 
 def test_a_chunk_finished_with_a_compressor_made_once_is_the_library_s_chunk(monkeypatch):
     """finish_chunk with a level-3 compressor writes the library's file byte for byte (its
-    chunks, their message indexes, the summary that indexes them); at level 1 the same
-    messages read back from a file of its own; elsewhere it is writer.flush()."""
+    chunks, their message indexes, the summary that indexes them); at the recorder's level
+    (a fast one) the same messages read back from a file of its own; elsewhere it is
+    writer.flush()."""
     want = _messages_file(False, 1 << 20)
     assert _messages_file(True, 1 << 20, level=3) == want
-    fast1 = _messages_file(True, 1 << 20, level=1)
+    fast1 = _messages_file(True, 1 << 20, level=ZSTD_LEVEL)
     assert fast1 != want
 
     def read(data):
@@ -243,4 +244,4 @@ def test_a_chunk_finished_with_a_compressor_made_once_is_the_library_s_chunk(mon
                 reader.iter_messages(log_time_order=False)], reader.get_summary().statistics
     assert read(fast1) == read(want)
     monkeypatch.setattr(mcap_messages, "FAST", False)
-    assert _messages_file(True, 1 << 20, level=1) == want
+    assert _messages_file(True, 1 << 20, level=ZSTD_LEVEL) == want
