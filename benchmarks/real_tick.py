@@ -23,7 +23,8 @@ compiled loop, :mod:`dentibot.app.drill_loop`, as it keeps any caller's tap).
 - ``breakdown``: one more run with ``time.perf_counter_ns`` hooks around each component
   (exclusive time: a component's time excludes the hooked components it calls), us per tick:
   ``drill_kernel`` (the compiled drilling ticks: every law of those ticks, their rows' numbers
-  and the world's steps between them), ``drill_loop`` (preparing each compiled call and
+  and the world's steps between them; recording, also their blocks sent to the recorder's
+  process, with any wait for room), ``drill_loop`` (preparing each compiled call and
   bringing the Python side up to date after it); for the ticks the control task runs itself:
   ``world_step``, ``control`` (forward chain, estimate, admittance law and arm command),
   ``supervisor``, ``state_machine`` (behaviours' detection and entry, the machine's

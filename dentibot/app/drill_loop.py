@@ -35,9 +35,12 @@ ticks run here: each call's rows as one :class:`~dentibot.telemetry.blocks.TickB
 numbers written by the compiled ticks, their compute time the call's shared out. With
 ``block_ticks`` below :data:`CHUNK` (the runner gives half a recorder's budget of ticks at
 risk, as its writer flushes), the rows leave in blocks of at most ``block_ticks`` ticks while
-the call goes on: a :class:`~dentibot.app.relay.Relay`'s thread hands each block over as the
-compiled ticks finish it, and the call computes at most the next block meanwhile
-(``relay=False``: each call runs one block, and hands it over when it returns).
+the call goes on. With a recorder process that offers its pipe (``rt.block_wire``, a
+:class:`~dentibot.telemetry.recorder_process.Wire`), the compiled ticks send it each block
+themselves as they finish it, and ``on_block_read`` (the other readers) takes all the call's
+rows after it; else a :class:`~dentibot.app.relay.Relay`'s thread hands each block over as
+the compiled ticks finish it, while the call computes at most the next one (``relay=False``:
+each call runs one block, and hands it over when it returns).
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ import time
 import numpy as np
 
 from dentibot.app import drill_kernels as dk
+from dentibot.app import relay_kernels as rk
 from dentibot.app.relay import Relay
 from dentibot.control.kinematics import WRIST_CENTRE_FRAME, euler_xyz_deg
 from dentibot.control.torque_rise import TorqueRise
@@ -102,6 +106,10 @@ class DrillLoop:
         #: needs it)
         self.relay: Relay | None = None
         self._relaying = relay and self.block_ticks < CHUNK
+        # a call that sends its blocks to the recorder's process itself (no thread)
+        self._ctl = np.zeros(rk.CTL_SIZE, dtype=np.int64)
+        self._busy = np.zeros(CHUNK // self.block_ticks + 1, dtype=np.int64)
+        self._wired = False
         self._last_block: TickBlock | None = None
         self.out = np.zeros((CHUNK, len(dk.OUT_FIELDS)))
         self.rows = np.zeros((CHUNK, WIDTH))
@@ -242,20 +250,33 @@ class DrillLoop:
                  canal._red_buf, float(canal.red0), ck.S["version"],
                  float(w.completeness()) if row_on else 0.0)
         k0 = rt.ticks
-        relay = self._relay(rt, k0, n_max, t_start)
+        wire = rt.block_wire if self._direct(rt, n_max) else None
+        relay = None if wire is not None else self._relay(rt, k0, n_max, t_start)
+        if wire is not None:
+            relay_args = Relay.direct_args(
+                self.block_ticks, self._ctl, self._busy,
+                wire.begin(rt.step_name, rt.treatment.state, rt.ts,
+                           rt.cfg.plan.working_length_mm, rt.ctx.reversals,
+                           self._phantom_euler),
+                self.rows, COL["compute_us"], k0)
+        else:
+            relay_args = Relay.off_args() if relay is None else relay.kernel_args()
         n, steps, code = dk.drill_ticks(n_max, k0, steps0, w.t, ts, origins, axis_p,
                                         tuple(state), saved, world_arrays, reads, sups, ctl,
                                         adms, feed, servos,
                                         (arm._p.vel_dead_time_s, sim_arm._ERROR), truth,
-                                        Relay.off_args() if relay is None
-                                        else relay.kernel_args(),
-                                        self.out, self.rows, self.last, self.frames, self.jh)
+                                        relay_args, self.out, self.rows, self.last,
+                                        self.frames, self.jh)
         handed, failed = 0, None
-        if relay is not None:
-            try:
+        try:
+            if relay is not None:
                 handed = relay.finish()
-            except Exception as exc:  # noqa: BLE001 - raised once the ticks are accounted for
-                failed = exc
+            elif wire is not None:
+                handed = int(self._ctl[rk.PUB])
+                wire.end(k0 + handed - 1, rt.ts, self.block_ticks)
+        except Exception as exc:  # noqa: BLE001 - raised once the ticks are accounted for
+            failed = exc
+        self._wired = wire is not None
         if not n:
             if failed is not None:
                 raise failed
@@ -268,6 +289,13 @@ class DrillLoop:
             rt.stats.add(0.0, time.perf_counter() - t0)
             n += 1
         return n
+
+    def _direct(self, rt, n_max: int) -> bool:
+        """Whether the call sends its blocks to the recorder's process itself: rows are read,
+        the recorder has a wire (``rt.block_wire``) and the readers of the rows besides it
+        take them after the call (``rt.on_block_read``)."""
+        return (rt.sink is not None and self._relaying and n_max > self.block_ticks
+                and rt.block_wire is not None and rt.on_block_read is not None)
 
     def _relay(self, rt, k0: int, n_max: int, t_start: float) -> Relay | None:
         """The relay, ready for a call of ``n_max`` ticks from tick ``k0``, or None when the
@@ -331,6 +359,24 @@ class DrillLoop:
             w.fracture_from_step(code)
         if rt.on_ticks is not None:
             rt.on_ticks(self.out, n, k0, rt.treatment.state)
+        if rt.sink is not None and self._wired:
+            # the recorder has the blocks the call sent; the rows after them go to it from
+            # here; the other readers take all the call's rows now
+            if handed < n:
+                self.rows[handed:n, COL["compute_us"]] = \
+                    self._ctl[rk.TAIL_NS] / (n - handed) / 1e3
+            block = TickBlock(self.rows[:n].copy(), k0, rt.ts, rt.step_name,
+                              rt.treatment.state, rt.cfg.plan.working_length_mm,
+                              rt.ctx.reversals, self._phantom_euler)
+            rt.last_row = block.row(-1)
+            try:
+                if failed is not None:
+                    raise failed
+                if handed < n:
+                    rt.block_wire.rec.record_block(block.part(handed, n))
+            finally:                              # the rows are read once they are recorded
+                rt.on_block_read(block)
+            return
         if failed is not None:
             raise failed
         if rt.sink is not None:

@@ -57,6 +57,12 @@ def _channel() -> tuple[int, int]:
     return r, w
 
 
+#: the direct part of a relay's tuple where there is no wire (the same types)
+_NO_WIRE = ((np.zeros(11, dtype=np.int64), np.zeros(1, dtype=np.uint8), 0, 0, 0,
+             np.zeros(1, dtype=np.uint8), np.zeros(1, dtype=np.uint8)),
+            np.zeros((1, 8), dtype=np.uint8), np.zeros((1, 1)), 0, 0)
+
+
 class _Link:
     """What the call, the thread and the owner share (the thread holds this, not the
     :class:`Relay`, so that a relay forgotten by its owner is collected and ends it)."""
@@ -151,16 +157,30 @@ class Relay:
         self._finalizer = weakref.finalize(self, self._link.close)
 
     def kernel_args(self) -> tuple:
-        """What the compiled call takes: (on, every, ctl, busy, posted, granted, its words)."""
+        """What the compiled call takes: (on, every, ctl, busy, posted, granted, its words,
+        then what a call straight to a recorder's wire takes, unused here)."""
         k = self._link
         return (True, self.every, k.ctl, k.busy, k.posted_w, k.granted_r, k.word_out,
-                k.word_in)
+                k.word_in, False, *_NO_WIRE)
 
     @staticmethod
     def off_args() -> tuple:
         """The same tuple for a call without a relay (the same types: no other compilation)."""
         return (False, 1, np.zeros(CTL_SIZE, dtype=np.int64), np.zeros(1, dtype=np.int64), -1, -1,
-                np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64))
+                np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64), False, *_NO_WIRE)
+
+    @staticmethod
+    def direct_args(every: int, ctl: np.ndarray, busy: np.ndarray, wire: tuple,
+                    rows: np.ndarray, compute_col: int, k0: int) -> tuple:
+        """The tuple for a call that hands each group of ``every`` ticks straight to a
+        recorder's process (``wire``: :meth:`~dentibot.telemetry.recorder_process.Wire.begin`'s
+        arguments), without a thread: ``rows`` (float64, C order) are the call's rows,
+        ``compute_col`` their compute time's column, ``k0`` the call's first tick. ``ctl``
+        and ``busy`` as a relay's (zeroed here)."""
+        ctl[:] = 0
+        return (True, int(every), ctl, busy, -1, -1, np.zeros(1, dtype=np.int64),
+                np.zeros(1, dtype=np.int64), True, wire, rows.view(np.uint8), rows,
+                int(compute_col), int(k0))
 
     @property
     def tail_ns(self) -> int:

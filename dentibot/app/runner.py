@@ -38,10 +38,16 @@ from dentibot.sim.canal import CanalParams, material_params
 from dentibot.sim.ftsensor import FTSensorParams
 from dentibot.sim.nitifile import NiTiFile
 from dentibot.sim.world import WorldConfig
-from dentibot.telemetry.blocks import TickBlock
+from dentibot.telemetry.blocks import WIDTH, TickBlock
 from dentibot.telemetry.foxglove import FoxgloveView
 from dentibot.telemetry.live import LiveView
-from dentibot.telemetry.recorder_process import open_recorder, prestart_recorder_process
+from dentibot.telemetry.recorder_process import (
+    Recorder,
+    RecorderProcess,
+    Wire,
+    open_recorder,
+    prestart_recorder_process,
+)
 from dentibot.telemetry.schema import TelemetryError
 from dentibot.telemetry.summary import RunSummary, SummaryAccumulator
 
@@ -246,10 +252,15 @@ class ProtocolRunner:
         """A block of rows (the simulator's compiled drilling ticks): the same as
         :meth:`_row` of each, the summary and the recorder taking the block whole (a run with
         a tap has no blocks: its ticks stay in the control task)."""
+        self._block_read(block, self.recorder)
+
+    def _block_read(self, block: TickBlock, recorder: Recorder | None = None) -> None:
+        """:meth:`_block` with the recorder given (without it: the compiled ticks sent the
+        rows to the recorder themselves)."""
         if self._live_summary:
             self.acc.add_block(block)
-        if self.recorder is not None:
-            self.recorder.record_block(block)
+        if recorder is not None:
+            recorder.record_block(block)
         if self.live is not None:
             for row in block.rows():
                 self.live.record(row)
@@ -360,6 +371,10 @@ class ProtocolRunner:
             rt.on_block = self._block
             rt.fused = DrillLoop(proc.world, proc.gate, proc.clock, block_ticks=(
                 self.recorder.budget // 2 if self.recorder is not None else CHUNK))
+            if isinstance(self.recorder, RecorderProcess):
+                # the compiled ticks send their blocks to the recorder's process themselves
+                rt.block_wire = Wire(self.recorder, WIDTH, CHUNK)
+                rt.on_block_read = self._block_read
         steps = StepExecutor(proc, aborted=lambda: bool(self._abort_reason))
         try:
             for i, step in enumerate(p.steps):

@@ -80,10 +80,10 @@ class Runtime:
         #: ``event_sink(tick, kind, detail)`` gets every event, command and fault as it happens.
         self.event_sink = event_sink
         self.on_tick: Callable[[Runtime], None] | None = None
-        #: whole ticks run before a tick (:mod:`dentibot.app.drill_loop`), their figures'
-        #: reader, and their rows' reader (blocks of rows, ``TickBlock``, instead of ``sink``)
+        #: ticks run in bulk (:mod:`dentibot.app.drill_loop`); readers of their figures and rows
+        #: (``on_block``: all; ``on_block_read``: all but a recorder fed via ``block_wire``)
         self.fused: Callable[[Runtime], Awaitable[int]] | None = None
-        self.on_ticks = self.on_block = None
+        self.on_ticks = self.on_block = self.on_block_read = self.block_wire = None
         self.ticks = 0
         self.events_log: list[tuple[int, str, str]] = []   # (tick, kind, detail)
         self.last: Estimate | None = None

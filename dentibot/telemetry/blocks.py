@@ -102,6 +102,8 @@ _TEMPLATES: dict[tuple, _TickTemplate] = {}
 #: little-endian. A pickle starts with 0x80, never with the tag.
 WIRE_TAG = b"B"
 _WIRE_HEAD = struct.Struct("<qIIddq3dHH")
+#: where the first tick (int64) and the number of ticks (uint32) lie in the wire form
+WIRE_K0_AT, WIRE_N_AT = len(WIRE_TAG), len(WIRE_TAG) + 8
 
 
 @dataclass(slots=True)

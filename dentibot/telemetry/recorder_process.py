@@ -58,15 +58,17 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import structlog
 
 from dentibot.errors import ConfigError
 from dentibot.logs import configure_default, configure_logging, logging_settings
-from dentibot.telemetry.blocks import WIRE_TAG, TickBlock
+from dentibot.telemetry import wire_kernels as wk
+from dentibot.telemetry.blocks import WIRE_K0_AT, WIRE_N_AT, WIRE_TAG, TickBlock
 from dentibot.telemetry.recorder import McapRecorder, RecorderBase, TelemetryOverflow
 from dentibot.telemetry.schema import END_STATUSES, TelemetryError
 
-__all__ = ["Recorder", "RecorderProcess", "open_recorder"]
+__all__ = ["Recorder", "RecorderProcess", "Wire", "open_recorder"]
 
 log = structlog.get_logger("dentibot.telemetry")
 
@@ -445,6 +447,106 @@ class RecorderProcess(RecorderBase):
 
 #: what :func:`open_recorder` returns
 Recorder = McapRecorder | RecorderProcess
+
+
+class Wire:
+    """A :class:`RecorderProcess`'s pipe for compiled code
+    (:func:`~dentibot.telemetry.wire_kernels.send_block`): the blocks of a compiled call's
+    ticks go to the recorder's process from the call itself, as
+    :meth:`RecorderProcess.record_block` hands them over (the same bytes, the same budget of
+    ticks at risk, its flush reports read), while the call runs without the interpreter
+    lock. :meth:`begin` before the call gives the kernel's arguments; :meth:`end` after it
+    brings the recorder up to date."""
+
+    def __init__(self, rec: RecorderProcess, width: int, max_ticks: int) -> None:
+        self.rec = rec
+        self.width = int(width)
+        self.st = np.zeros(wk.ST_SIZE, dtype=np.int64)
+        report = 1 + _FLUSHED_BODY.size
+        self.flush = np.zeros(report, dtype=np.uint8)
+        self.incoming = np.zeros(4 + report, dtype=np.uint8)
+        self._max_ticks = int(max_ticks)
+        self.msg = np.zeros(0, dtype=np.uint8)
+        self._head: tuple | None = None
+
+    def begin(self, step: str, state: str, ts: float, working_length_mm: float,
+              reversals: int, phantom_euler: tuple) -> tuple:
+        """Before a call whose blocks share these (a :class:`~dentibot.telemetry.blocks.TickBlock`'s
+        fields): what was handed over before goes first; the kernel's arguments
+        ``(st, msg, head_size, k0_at, n_at, incoming, flush)``."""
+        rec = self.rec
+        if rec._dead is not None or rec._closed:
+            rec._raise_dead()
+        if rec._pending:                       # what came before the call, first
+            rec._send()
+        rec._read_acks()
+        key = (step, state, ts, working_length_mm, reversals, tuple(phantom_euler))
+        if key != self._head:
+            # the header of a block of these (its first tick and count written per block)
+            head = TickBlock(np.zeros((1, self.width)), 0, ts, step, state, working_length_mm,
+                             reversals, tuple(phantom_euler)).packed()[0]
+            size = 4 + len(head) + 8 * self.width * self._max_ticks
+            if self.msg.shape[0] < size:
+                self.msg = np.zeros(size, dtype=np.uint8)
+            self.msg[4:4 + len(head)] = np.frombuffer(head, dtype=np.uint8)
+            self._head_size = 4 + len(head)
+            self._head = key
+        st = self.st
+        st[:] = 0
+        st[wk.QUEUED], st[wk.SETTLED], st[wk.BUDGET] = rec.rows_queued, rec._settled, rec.budget
+        st[wk.ROWS_FD], st[wk.ACKS_FD] = rec._rows.fileno(), rec._acks.fileno()
+        st[wk.MAX_WAIT_MS] = max(1, round(rec.max_wait_s * 1000))
+        st[wk.AT_RISK_MAX] = rec.at_risk_max
+        return (st, self.msg, self._head_size, 4 + WIRE_K0_AT, 4 + WIRE_N_AT, self.incoming,
+                self.flush)
+
+    def end(self, last_tick: int, ts: float, group: int) -> None:
+        """After the call (``last_tick``: the last tick it handed over, ``group``: its blocks'
+        size): the recorder's counts and the reports read; a report that is not a flush is
+        taken as :meth:`RecorderProcess.record_block` takes it. Raises what it would raise:
+        the recorder dead or closed, or no room within its longest wait (an overflow of the
+        block that found none)."""
+        rec, st = self.rec, self.st
+        sent = int(st[wk.QUEUED]) - rec.rows_queued
+        if sent:
+            rec.rows_queued = int(st[wk.QUEUED])
+            rec.queue_depth_max = max(rec.queue_depth_max, min(sent, group))
+            rec._last_t = last_tick * ts
+        rec.at_risk_max = max(rec.at_risk_max, int(st[wk.AT_RISK_MAX]))
+        if st[wk.FLUSHES]:
+            rec._on_ack(_ack(self.flush.tobytes()))
+        status = int(st[wk.STATUS])
+        if status == wk.OTHER:
+            size = int(st[wk.OTHER_LEN])
+            try:
+                data = (self.incoming[4:4 + size].tobytes() if st[wk.OTHER_READ]
+                        else _read_exactly(rec._acks.fileno(), size))
+            except (EOFError, OSError):
+                status = wk.PIPE
+            else:
+                rec._on_ack(_ack(data))
+                rec._read_acks()
+        if status == wk.PIPE:
+            rec._read_acks()
+            if rec._dead is None:
+                rec._dead = TelemetryError(rec.path, f"the recorder process is gone (exit "
+                                           f"code {rec._proc.exitcode})")
+        if rec._dead is not None:
+            rec._raise_dead()
+        if status == wk.NO_ROOM:
+            rec.backpressure_waits += 1
+            rec._overflow({"tick": last_tick + 1}, group)
+
+
+def _read_exactly(fd: int, size: int) -> bytes:
+    parts, left = [], size
+    while left:
+        part = os.read(fd, left)
+        if not part:
+            raise EOFError
+        parts.append(part)
+        left -= len(part)
+    return b"".join(parts)
 
 
 def _release(*conns: Connection) -> None:

@@ -103,8 +103,9 @@ steps:
 
 def _recorded(tmp_path, compiled: bool, monkeypatch) -> tuple:
     """A recorded run of :data:`RECORDED`: its summary, progress, the recording's messages
-    (each /tick without its compute time), how many ticks went over in each block, and the
-    compiled calls' largest number of ticks with the blocks handed over as it runs."""
+    (each /tick without its compute time), how many ticks each block of rows held, the
+    compiled calls' largest number of ticks with the blocks handed over as it runs, and the
+    most ticks the recorder had at risk."""
     import orjson
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
@@ -112,8 +113,6 @@ def _recorded(tmp_path, compiled: bool, monkeypatch) -> tuple:
     from dentibot.app.runner import ProtocolRunner
     from dentibot.protocol.loader import load_protocol
     from dentibot.telemetry.cdr import TICK_CODEC
-
-    from dentibot.app import drill_kernels as dk
 
     in_blocks, relayed = [], [0]
     ticks = dk.drill_ticks
@@ -124,9 +123,9 @@ def _recorded(tmp_path, compiled: bool, monkeypatch) -> tuple:
             relayed[0] = max(relayed[0], n_max)
         return ticks(n_max, *args)
     monkeypatch.setattr(dk, "drill_ticks", counted)
-    block = ProtocolRunner._block
-    monkeypatch.setattr(ProtocolRunner, "_block",
-                        lambda self, b: (in_blocks.append(len(b)), block(self, b)))
+    block = ProtocolRunner._block_read
+    monkeypatch.setattr(ProtocolRunner, "_block_read",
+                        lambda self, b, *rec: (in_blocks.append(len(b)), block(self, b, *rec)))
     progress: list[dict] = []
     spec = tmp_path / "recorded.yaml"
     spec.write_text(RECORDED)
@@ -134,6 +133,7 @@ def _recorded(tmp_path, compiled: bool, monkeypatch) -> tuple:
     runner = ProtocolRunner(load_protocol(spec), recording=path, progress=progress.append,
                             compiled_ticks=compiled)
     result = asyncio.run(runner.run())
+    at_risk = runner.recorder.at_risk_max
     messages = []                  # after /run, at their log time from the run's start
     ros2, start = DecoderFactory(), 0
     with open(path, "rb") as f:
@@ -156,7 +156,7 @@ def _recorded(tmp_path, compiled: bool, monkeypatch) -> tuple:
             if channel.topic == "/tick":
                 obj.pop("compute_us")
             messages.append((channel.topic, message.log_time - start, _relative(obj, start)))
-    return result.summary, progress, messages, in_blocks, relayed[0]
+    return result.summary, progress, messages, in_blocks, relayed[0], at_risk
 
 
 def _relative(obj, start_ns: int):
@@ -179,15 +179,48 @@ def test_a_recorded_run_hands_its_drilling_rows_over_in_blocks(tmp_path, monkeyp
     # the kernels the rows' numbers take, compiled at import for the types the runs pass
     kernels = (kk.tool_euler_deg, kk.euler_xyz_deg, ck.red_area)
     before = [list(k.signatures) for k in kernels]
-    summary, progress, messages, blocks, relayed = _recorded(tmp_path, True, monkeypatch)
-    again, progress_again, messages_again, none, _ = _recorded(tmp_path, False, monkeypatch)
+    summary, progress, messages, blocks, relayed, at_risk = _recorded(tmp_path, True,
+                                                                      monkeypatch)
+    again, progress_again, messages_again, none, _, _ = _recorded(tmp_path, False, monkeypatch)
     assert [list(k.signatures) for k in kernels] == before
     assert not none and sum(blocks) > 2000          # most of the drilling went in blocks
-    assert max(blocks) <= 25                        # half the recorder's budget of 50 ticks
-    assert relayed > 25                             # ... from calls of more ticks than that
+    # calls of more ticks than half the recorder's budget (25), whose blocks reached the
+    # recorder as they were computed: never more than its budget at risk
+    assert relayed > 25 and max(blocks) > 25
+    assert at_risk <= 50
     assert summary.reversals > 0 and summary == again
     assert progress == progress_again
     assert {"/tick", "/tf", "/scene", "/events"} <= {topic for topic, _, _ in messages}
     assert len(messages) == len(messages_again)
     for message, message_again in zip(messages, messages_again):
         assert message == message_again
+
+
+def test_a_recorder_process_that_dies_while_the_compiled_ticks_drill_faults_the_run(tmp_path):
+    """The recorder's process killed while the drilling ticks send it their blocks: the run
+    stops the file and the arm and ends in a fault that names the recording, and what was
+    flushed before stays readable."""
+    import os
+    import signal
+
+    from dentibot.app.runner import ProtocolRunner
+    from dentibot.protocol.loader import load_protocol
+    from dentibot.telemetry.reader import read_recording
+
+    spec = tmp_path / "recorded.yaml"
+    spec.write_text(RECORDED)
+    path = tmp_path / "killed.mcap"
+    killed = []
+
+    def progress(figures):
+        if figures["step"].endswith(":drill") and figures["depth_mm"] > 1.0 and not killed:
+            killed.append(figures["t"])
+            os.kill(runner.recorder.pid, signal.SIGKILL)
+    runner = ProtocolRunner(load_protocol(spec), recording=path, progress=progress)
+    result = asyncio.run(runner.run())
+    assert killed
+    assert result.summary.status == "fault"
+    assert "record" in result.summary.reason
+    assert runner.world.handpiece.cmd_rpm == 0.0 and not runner.world.arm._vel_cmd.any()
+    rec = read_recording(path)
+    assert not rec.complete and rec.rows                  # cut short, readable up to then

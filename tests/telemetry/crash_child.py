@@ -52,7 +52,7 @@ def main_job(out: str) -> None:
 
     class Reporting(ProtocolRunner):
         """The CLI's runner, reporting each row after handing it over (the drilling ticks'
-        rows in blocks, as the CLI's run hands them over)."""
+        rows in blocks, after the compiled call that sent them)."""
 
         said = False
 
@@ -66,8 +66,10 @@ def main_job(out: str) -> None:
             self._say_pid()
             _report(row["tick"])
 
-        def _block(self, block) -> None:
-            super()._block(block)
+        def _block_read(self, block, recorder=None) -> None:
+            # every block of rows: recorded here (``recorder``), or already sent to the
+            # recorder by the compiled ticks that computed them
+            super()._block_read(block, recorder)
             self._say_pid()
             for k in block.ticks:
                 _report(k)
