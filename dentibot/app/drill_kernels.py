@@ -118,12 +118,12 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
     canal's state, and the completeness at the first tick. It is computed again only when the
     lumen changed, as :meth:`~dentibot.sim.world.World.completeness` is.
 
-    ``relay``: :meth:`~dentibot.app.relay.Relay.kernel_args` (or its ``off_args``): each
-    group of ``every`` ticks whose rows are written is published there (its compute time,
-    the waits left out, with it), and no tick runs past the relay's limit until the relay
-    has handed the rows before it over; an abort stops the call before its next tick. The
-    call runs without the interpreter lock (``nogil``), so that the relay's thread can hand
-    over while it computes."""
+    ``relay``: :func:`~dentibot.app.relay_kernels.wire_args` (or
+    :data:`~dentibot.app.relay_kernels.OFF`): each group of ``every`` ticks whose rows are
+    written is sent to the recorder's process as the call goes on, with its compute time; a
+    group the recorder does not take stops the call before its next tick. The call runs
+    without the interpreter lock (``nogil``): the recorder's process is another, and the
+    call waits for its room in a system call."""
     (ws, wp, F, dh_w, ast, ap, lims, q, qd, vel_cmd, target, queue_t, queue_v, cst, cp, R, h,
      s_arr, kappa, b0, b1, b2, cout, hs, hpp, hnoise, ss, sp, snoise) = world
     (enc_res, i_origin, i_tip, i_omega, i_pos, i_current, i_torque, i_stalled, i_last0,
@@ -156,7 +156,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
     ran, stepped = n_max, max(n_max - 1, 0)
     rk.begin(relay)
     for i in range(n_max):
-        if not rk.hold(relay, i):             # the relay failed: stop before the tick
+        if not rk.hold(relay, i):             # a group not taken: stop before the tick
             ran = stepped = i
             break
         _keep(saved, state)
@@ -268,7 +268,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
             r[R_COMPLETENESS] = completeness
         last[LAST_SCALAR], last[LAST_SCALAR + 1], last[LAST_SCALAR + 2] = norm, pos, fz
         last_frames, last_jh = frames, jh
-        rk.publish(relay, i)                  # the rows of a group are written
+        rk.publish(relay, i)                  # the rows of a group are written: send them
         if i == n_max - 1:
             break
         # the world's next step (the clock's, between two ticks)

@@ -34,13 +34,14 @@ Where rows are read, ``on_block(block)`` (``Runtime.on_block``) replaces the ``s
 ticks run here: each call's rows as one :class:`~dentibot.telemetry.blocks.TickBlock`, their
 numbers written by the compiled ticks, their compute time the call's shared out. With
 ``block_ticks`` below :data:`CHUNK` (the runner gives half a recorder's budget of ticks at
-risk, as its writer flushes), the rows leave in blocks of at most ``block_ticks`` ticks while
-the call goes on. With a recorder process that offers its pipe (``rt.block_wire``, a
-:class:`~dentibot.telemetry.recorder_process.Wire`), the compiled ticks send it each block
-themselves as they finish it, and ``on_block_read`` (the other readers) takes all the call's
-rows after it; else a :class:`~dentibot.app.relay.Relay`'s thread hands each block over as
-the compiled ticks finish it, while the call computes at most the next one (``relay=False``:
-each call runs one block, and hands it over when it returns).
+risk, as its writer flushes), the rows leave in blocks of at most ``block_ticks`` ticks:
+
+- to a recorder process that offers its pipe (``rt.block_wire``, a
+  :class:`~dentibot.telemetry.recorder_process.Wire`), the compiled ticks send each block
+  themselves as they finish it (:mod:`~dentibot.app.relay_kernels`), in calls of up to
+  :data:`CHUNK` ticks; the ticks after the call's last block go to it after the call, and
+  ``on_block_read`` (the other readers) takes all the call's rows then;
+- else each call runs at most ``block_ticks`` ticks and hands its rows to ``on_block``.
 """
 
 from __future__ import annotations
@@ -51,7 +52,6 @@ import numpy as np
 
 from dentibot.app import drill_kernels as dk
 from dentibot.app import relay_kernels as rk
-from dentibot.app.relay import Relay
 from dentibot.control.kinematics import WRIST_CENTRE_FRAME, euler_xyz_deg
 from dentibot.control.torque_rise import TorqueRise
 from dentibot.runtime.clock import LockStepClock
@@ -93,7 +93,7 @@ class DrillLoop:
     docstring); ``gate`` and ``clock`` are the procedure's."""
 
     def __init__(self, world, gate, clock: LockStepClock, every: int | None = None,
-                 block_ticks: int = CHUNK, relay: bool = True) -> None:
+                 block_ticks: int = CHUNK) -> None:
         self.world = world
         self.gate = gate
         self.clock = clock
@@ -102,15 +102,10 @@ class DrillLoop:
         self.every = every
         #: most ticks per call when the rows are read (a recorder's budget of ticks at risk)
         self.block_ticks = max(2, min(CHUNK, int(block_ticks)))
-        #: hands a call's blocks over as they are computed (made at the first call that
-        #: needs it)
-        self.relay: Relay | None = None
-        self._relaying = relay and self.block_ticks < CHUNK
-        # a call that sends its blocks to the recorder's process itself (no thread)
+        # a call that sends its blocks to the recorder's process itself
         self._ctl = np.zeros(rk.CTL_SIZE, dtype=np.int64)
         self._busy = np.zeros(CHUNK // self.block_ticks + 1, dtype=np.int64)
         self._wired = False
-        self._last_block: TickBlock | None = None
         self.out = np.zeros((CHUNK, len(dk.OUT_FIELDS)))
         self.rows = np.zeros((CHUNK, WIDTH))
         self._phantom_euler = euler_xyz_deg(world.phantom_pose[:3, :3])
@@ -164,7 +159,7 @@ class DrillLoop:
             n = min(n, due)
         if self.every:
             n = min(n, -rt.ticks % self.every + 1)
-        if rt.sink is not None and not self._relaying:
+        if rt.sink is not None and not self._wire(rt):
             n = min(n, self.block_ticks)
         k = max(hp.hs[hpk.S["k"]], w.sensor.ss[ftk.S["k"]])
         n = min(n, int(min(HP_NOISE_BLOCK, FT_NOISE_BLOCK) - k))
@@ -250,32 +245,25 @@ class DrillLoop:
                  canal._red_buf, float(canal.red0), ck.S["version"],
                  float(w.completeness()) if row_on else 0.0)
         k0 = rt.ticks
-        wire = rt.block_wire if self._direct(rt, n_max) else None
-        relay = None if wire is not None else self._relay(rt, k0, n_max, t_start)
-        if wire is not None:
-            relay_args = Relay.direct_args(
-                self.block_ticks, self._ctl, self._busy,
-                wire.begin(rt.step_name, rt.treatment.state, rt.ts,
-                           rt.cfg.plan.working_length_mm, rt.ctx.reversals,
-                           self._phantom_euler),
-                self.rows, COL["compute_us"], k0)
-        else:
-            relay_args = Relay.off_args() if relay is None else relay.kernel_args()
+        wire = rt.block_wire if self._wire(rt) and n_max > self.block_ticks else None
+        relay = rk.OFF if wire is None else rk.wire_args(
+            self.block_ticks, self._ctl, self._busy,
+            wire.begin(rt.step_name, rt.treatment.state, rt.ts, rt.cfg.plan.working_length_mm,
+                       rt.ctx.reversals, self._phantom_euler),
+            self.rows, COL["compute_us"], k0)
         n, steps, code = dk.drill_ticks(n_max, k0, steps0, w.t, ts, origins, axis_p,
                                         tuple(state), saved, world_arrays, reads, sups, ctl,
                                         adms, feed, servos,
                                         (arm._p.vel_dead_time_s, sim_arm._ERROR), truth,
-                                        relay_args, self.out, self.rows, self.last,
-                                        self.frames, self.jh)
+                                        relay, self.out, self.rows, self.last, self.frames,
+                                        self.jh)
         handed, failed = 0, None
-        try:
-            if relay is not None:
-                handed = relay.finish()
-            elif wire is not None:
-                handed = int(self._ctl[rk.PUB])
+        if wire is not None:
+            handed = int(self._ctl[rk.PUB])
+            try:
                 wire.end(k0 + handed - 1, rt.ts, self.block_ticks)
-        except Exception as exc:  # noqa: BLE001 - raised once the ticks are accounted for
-            failed = exc
+            except Exception as exc:  # noqa: BLE001 - raised once the ticks are accounted for
+                failed = exc
         self._wired = wire is not None
         if not n:
             if failed is not None:
@@ -290,50 +278,19 @@ class DrillLoop:
             n += 1
         return n
 
-    def _direct(self, rt, n_max: int) -> bool:
-        """Whether the call sends its blocks to the recorder's process itself: rows are read,
-        the recorder has a wire (``rt.block_wire``) and the readers of the rows besides it
-        take them after the call (``rt.on_block_read``)."""
-        return (rt.sink is not None and self._relaying and n_max > self.block_ticks
-                and rt.block_wire is not None and rt.on_block_read is not None)
-
-    def _relay(self, rt, k0: int, n_max: int, t_start: float) -> Relay | None:
-        """The relay, ready for a call of ``n_max`` ticks from tick ``k0``, or None when the
-        call hands its rows over itself."""
-        if rt.sink is None or not self._relaying or n_max <= self.block_ticks:
-            return None
-        if self.relay is None:
-            self.relay = Relay(self.block_ticks, CHUNK // self.block_ticks + 1)
-        prep_ns = int((time.perf_counter() - t_start) * 1e9)
-
-        def hand(start: int, stop: int, busy_ns: int) -> None:
-            # the first block's compute time takes the call's preparation too
-            ns = busy_ns + (prep_ns if start == 0 else 0)
-            self._hand_over(rt, k0, start, stop, ns / (stop - start) / 1e3)
-        self.relay.start(hand)
-        return self.relay
-
-    def _hand_over(self, rt, k0: int, start: int, stop: int, compute_us: float) -> None:
-        """Rows ``start`` to ``stop`` of the call from tick ``k0``, as one block, to
-        ``rt.on_block``."""
-        cols = self.rows[start:stop].copy()
-        cols[:, COL["compute_us"]] = compute_us
-        block = TickBlock(cols, k0 + start, rt.ts, rt.step_name, rt.treatment.state,
-                          rt.cfg.plan.working_length_mm, rt.ctx.reversals, self._phantom_euler)
-        rt.on_block(block)
-        self._last_block = block
-
-    def close(self) -> None:
-        """End the relay's thread, if any (also done when the loop is forgotten)."""
-        if self.relay is not None:
-            self.relay.close()
-            self.relay = None
+    @staticmethod
+    def _wire(rt) -> bool:
+        """Whether the calls send their blocks to the recorder's process themselves: rows
+        are read, the recorder has a pipe for them (``rt.block_wire``) and the readers of
+        the rows besides it take them after the call (``rt.on_block_read``)."""
+        return (rt.sink is not None and rt.block_wire is not None
+                and rt.on_block_read is not None)
 
     def _after(self, rt, n: int, steps: int, code: int, k0: int, steps0: int,
                wall_s: float, handed: int = 0, failed: BaseException | None = None) -> None:
         """The Python side brought up to date after ``n`` ticks ran here, the first
-        ``handed`` of them handed over by the relay (whose failure, if any, is raised once
-        the rest is up to date)."""
+        ``handed`` of them sent to the recorder by the call (the wire's failure, if any, is
+        raised once the rest is up to date)."""
         w, last, row = self.world, self.last, self.rows[n - 1]
         norm, pos, fz = last[dk.LAST_SCALAR:].tolist()
         tau, cur, rpm, depth, fz_star = row[[_TAU, _CUR, _RPM, _DEPTH, _FZ_STAR]].tolist()
@@ -377,14 +334,12 @@ class DrillLoop:
             finally:                              # the rows are read once they are recorded
                 rt.on_block_read(block)
             return
-        if failed is not None:
-            raise failed
         if rt.sink is not None:
-            if handed < n:
-                # the call's compute time shared out; after a relay, the ticks after its
-                # last block take what the call spent on them
-                us = (wall_s / n * 1e6 if not handed
-                      else self.relay.tail_ns / (n - handed) / 1e3)
-                self._hand_over(rt, k0, handed, n, us)
-            rt.last_row = self._last_block.row(-1)
+            cols = self.rows[:n].copy()
+            cols[:, COL["compute_us"]] = wall_s / n * 1e6    # the call's, shared out
+            block = TickBlock(cols, k0, rt.ts, rt.step_name, rt.treatment.state,
+                              rt.cfg.plan.working_length_mm, rt.ctx.reversals,
+                              self._phantom_euler)
+            rt.on_block(block)
+            rt.last_row = block.row(-1)
 

@@ -1,48 +1,63 @@
-"""What a compiled loop running without the interpreter lock needs to hand its results to a
-Python thread as it goes: the call's side of a :class:`~dentibot.app.relay.Relay`
-(:func:`begin`, :func:`hold` before each tick, :func:`publish` after it, :func:`end`), on
-two 8-byte messages through a file descriptor (an ``eventfd``, or a pipe): :func:`post`
-wakes a thread blocked in :func:`wait` (the C library's calls of
-:mod:`~dentibot.telemetry.fd_kernels`, where the compiler keeps nothing of the shared arrays
-across the call).
+"""A compiled call's blocks of ticks sent to the recorder as the call computes them.
+
+A recorder must never hold more than its budget of ticks at risk (what a crash could lose),
+so the rows of the compiled drilling ticks must leave every half budget (25 ticks at
+500 Hz). Calls of 25 ticks each cost about 300 us of Python around the kernel (its
+arguments, the Python side brought up to date, the world between calls), which doubled the
+cost of a recorded tick. Instead a call runs up to 256 ticks without the interpreter lock
+and sends each group of ``every`` ticks to the recorder's process itself, through the
+recorder's pipe (:func:`~dentibot.telemetry.wire_kernels.send_block`: the bytes, the budget
+and the waits for room of ``record_block``), as it finishes the group: :func:`begin`, then
+:func:`hold` before each tick, :func:`publish` after it, :func:`end`.
+
+The relay's tuple (:func:`wire_args`, or :data:`OFF` for a call that sends nothing):
+``(on, every, ctl, busy, wire, rows_u8, rows, compute_col, k0)``; ``ctl`` holds the cells
+below, ``busy[g]`` group ``g``'s compute time (ns, the waits for room left out), also
+written into its rows' ``compute_col`` before they leave. A group the recorder did not take
+(no room in time, the process gone or closed) stops the call before its next tick; the
+caller reads why from the wire.
 """
 
 from __future__ import annotations
 
+import numpy as np
 from numba import njit
 
-from dentibot.telemetry.fd_kernels import fd_read, fd_write, now_ns
-from dentibot.telemetry.wire_kernels import OK, STATUS, send_block
+from dentibot.telemetry.fd_kernels import now_ns
+from dentibot.telemetry.wire_kernels import OK, ST_SIZE, STATUS, send_block
 
-__all__ = ["ABORT", "CTL_SIZE", "LIMIT", "PUB", "TAIL_NS", "begin", "end", "hold", "post",
-           "publish", "wait"]
+__all__ = ["ABORT", "CTL_SIZE", "OFF", "PUB", "TAIL_NS", "begin", "end", "hold", "publish",
+           "wire_args"]
 
-
-@njit(cache=True)
-def post(fd, word) -> int:
-    """Write ``word[0]`` (8 bytes) to ``fd``: wakes a thread blocked reading it."""
-    return fd_write(fd, word, 0, 8)
-
-
-@njit(cache=True)
-def wait(fd, word) -> int:
-    """Read 8 bytes from ``fd`` into ``word[0]``, blocking until something was posted."""
-    return fd_read(fd, word, 0, 8)
+#: ``ctl``'s cells: ticks sent, nonzero when the call must stop, the compute time (ns) of the
+#: ticks after the last group sent; then the call's own bookkeeping: the current group's
+#: compute time so far and when its current stretch began
+PUB, ABORT, TAIL_NS, BUSY_NS, STRETCH_T0 = range(5)
+CTL_SIZE = 5
 
 
-# ---------------------------------------------------------------------- a call's side
-#: ``ctl``'s cells (:class:`~dentibot.app.relay.Relay`): ticks published by the call, ticks
-#: it may run (it waits before tick ``ctl[LIMIT]``), nonzero when it must stop, the compute
-#: time (ns) of its ticks after the last group published; then the call's own bookkeeping:
-#: the current group's compute time so far and when its current stretch began
-PUB, LIMIT, ABORT, TAIL_NS, BUSY_NS, STRETCH_T0 = range(6)
-CTL_SIZE = 6
+def wire_args(every: int, ctl: np.ndarray, busy: np.ndarray, wire: tuple, rows: np.ndarray,
+              compute_col: int, k0: int) -> tuple:
+    """The tuple of a call from tick ``k0`` that sends each group of ``every`` ticks
+    through ``wire`` (:meth:`~dentibot.telemetry.recorder_process.Wire.begin`'s arguments):
+    ``rows`` (float64, C order) are the call's rows, ``compute_col`` their compute time's
+    column; ``ctl`` (zeroed here) and ``busy`` as the module docstring says."""
+    ctl[:] = 0
+    return (True, int(every), ctl, busy, wire, rows.view(np.uint8), rows, int(compute_col),
+            int(k0))
+
+
+#: the tuple of a call that sends nothing (the same types: no other compilation)
+OFF = (False, 1, np.zeros(CTL_SIZE, dtype=np.int64), np.zeros(1, dtype=np.int64),
+       (np.zeros(ST_SIZE, dtype=np.int64), np.zeros(1, dtype=np.uint8), 0, 0, 0,
+        np.zeros(1, dtype=np.uint8), np.zeros(1, dtype=np.uint8)),
+       np.zeros((1, 8), dtype=np.uint8), np.zeros((1, 1)), 0, 0)
 
 
 @njit(cache=True)
 def begin(relay) -> None:
     """At the call's start."""
-    on, _, ctl = relay[0], relay[1], relay[2]
+    on, ctl = relay[0], relay[2]
     if on:
         ctl[BUSY_NS] = 0
         ctl[STRETCH_T0] = now_ns()
@@ -50,41 +65,20 @@ def begin(relay) -> None:
 
 @njit(cache=True)
 def hold(relay, i) -> bool:
-    """Before tick ``i``: wait while the relay is a group behind; False when the call must
-    stop (the relay failed, or the recorder's wire)."""
-    on, ctl, granted, word_in, direct = relay[0], relay[2], relay[5], relay[7], relay[8]
-    if direct:
-        return ctl[ABORT] == 0
-    if not on or i < ctl[LIMIT]:
-        return True
-    t = now_ns()
-    ctl[BUSY_NS] += t - ctl[STRETCH_T0]
-    while i >= ctl[LIMIT] and ctl[ABORT] == 0:
-        wait(granted, word_in)
-    ctl[STRETCH_T0] = now_ns()
-    return ctl[ABORT] == 0
+    """Before tick ``i``: False when the call must stop (a group was not taken)."""
+    return relay[2][ABORT] == 0
 
 
 @njit(cache=True)
 def publish(relay, i) -> None:
-    """After tick ``i``'s row is written: publish the group it completes, if it does (to the
-    relay's thread; or, ``direct``, straight to the recorder's process through its wire:
-    :func:`~dentibot.telemetry.wire_kernels.send_block`, the group's compute time written in
-    its rows first)."""
-    on, every, ctl, busy, posted, word_out = (relay[0], relay[1], relay[2], relay[3],
-                                              relay[4], relay[6])
+    """After tick ``i``'s row is written: send the group it completes, if it does, its
+    compute time written in its rows first."""
+    on, every, ctl, busy = relay[0], relay[1], relay[2], relay[3]
     if not on or (i + 1) % every != 0:
         return
-    t = now_ns()
-    busy_ns = ctl[BUSY_NS] + t - ctl[STRETCH_T0]
+    (st, msg, head_size, k0_at, n_at, incoming, flush), rows_u8, rows, col, k0 = relay[4:]
+    busy_ns = ctl[BUSY_NS] + now_ns() - ctl[STRETCH_T0]
     busy[(i + 1) // every - 1] = busy_ns
-    ctl[BUSY_NS] = 0
-    ctl[STRETCH_T0] = t
-    if not relay[8]:
-        ctl[PUB] = i + 1
-        post(posted, word_out)
-        return
-    (st, msg, head_size, k0_at, n_at, incoming, flush), rows_u8, rows, col, k0 = relay[9:]
     start = i + 1 - every
     us = busy_ns / every / 1000.0
     for r in range(start, i + 1):
@@ -94,6 +88,7 @@ def publish(relay, i) -> None:
         ctl[PUB] = i + 1
     if st[STATUS] != OK:
         ctl[ABORT] = 1
+    ctl[BUSY_NS] = 0
     ctl[STRETCH_T0] = now_ns()                    # a wait for room is not compute time
 
 

@@ -406,8 +406,6 @@ class ProtocolRunner:
         return RunResult(self._close(status, reason), self.path)
 
     def _close(self, status: str, reason: str) -> RunSummary:
-        if isinstance(self.rt.fused, DrillLoop):
-            self.rt.fused.close()             # its relay's thread, if any
         if self.live is not None:
             self.live.close(status, reason)
         if self.recorder is not None:
