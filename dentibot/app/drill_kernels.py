@@ -156,7 +156,7 @@ def drill_ticks(n_max, k0, steps0, t0, ts, origins, axis_p, state, saved, world,
     ran, stepped = n_max, max(n_max - 1, 0)
     rk.begin(relay)
     for i in range(n_max):
-        if not rk.hold(relay, i):             # a group not taken: stop before the tick
+        if not rk.hold(relay):             # a group not taken: stop before the tick
             ran = stepped = i
             break
         _keep(saved, state)

@@ -104,8 +104,6 @@ class DrillLoop:
         self.block_ticks = max(2, min(CHUNK, int(block_ticks)))
         # a call that sends its blocks to the recorder's process itself
         self._ctl = np.zeros(rk.CTL_SIZE, dtype=np.int64)
-        self._busy = np.zeros(CHUNK // self.block_ticks + 1, dtype=np.int64)
-        self._wired = False
         self.out = np.zeros((CHUNK, len(dk.OUT_FIELDS)))
         self.rows = np.zeros((CHUNK, WIDTH))
         self._phantom_euler = euler_xyz_deg(world.phantom_pose[:3, :3])
@@ -247,7 +245,7 @@ class DrillLoop:
         k0 = rt.ticks
         wire = rt.block_wire if self._wire(rt) and n_max > self.block_ticks else None
         relay = rk.OFF if wire is None else rk.wire_args(
-            self.block_ticks, self._ctl, self._busy,
+            self.block_ticks, self._ctl,
             wire.begin(rt.step_name, rt.treatment.state, rt.ts, rt.cfg.plan.working_length_mm,
                        rt.ctx.reversals, self._phantom_euler),
             self.rows, COL["compute_us"], k0)
@@ -264,13 +262,12 @@ class DrillLoop:
                 wire.end(k0 + handed - 1, rt.ts, self.block_ticks)
             except Exception as exc:  # noqa: BLE001 - raised once the ticks are accounted for
                 failed = exc
-        self._wired = wire is not None
         if not n:
             if failed is not None:
                 raise failed
             return 0
-        self._after(rt, n, steps, code, k0, steps0, time.perf_counter() - t_start, handed,
-                    failed)
+        self._after(rt, n, steps, code, k0, steps0, time.perf_counter() - t_start,
+                    wire is not None, handed, failed)
         if steps == n:                # the next tick is due: the control task's own
             t0 = time.perf_counter()
             await rt.tick(0.0)
@@ -287,10 +284,11 @@ class DrillLoop:
                 and rt.on_block_read is not None)
 
     def _after(self, rt, n: int, steps: int, code: int, k0: int, steps0: int,
-               wall_s: float, handed: int = 0, failed: BaseException | None = None) -> None:
-        """The Python side brought up to date after ``n`` ticks ran here, the first
-        ``handed`` of them sent to the recorder by the call (the wire's failure, if any, is
-        raised once the rest is up to date)."""
+               wall_s: float, wired: bool = False, handed: int = 0,
+               failed: BaseException | None = None) -> None:
+        """The Python side brought up to date after ``n`` ticks ran here; ``wired``: the call
+        sent its blocks to the recorder, the first ``handed`` ticks (the wire's failure, if
+        any, is raised once the rest is up to date)."""
         w, last, row = self.world, self.last, self.rows[n - 1]
         norm, pos, fz = last[dk.LAST_SCALAR:].tolist()
         tau, cur, rpm, depth, fz_star = row[[_TAU, _CUR, _RPM, _DEPTH, _FZ_STAR]].tolist()
@@ -316,7 +314,7 @@ class DrillLoop:
             w.fracture_from_step(code)
         if rt.on_ticks is not None:
             rt.on_ticks(self.out, n, k0, rt.treatment.state)
-        if rt.sink is not None and self._wired:
+        if rt.sink is not None and wired:
             # the recorder has the blocks the call sent; the rows after them go to it from
             # here; the other readers take all the call's rows now
             if handed < n:

@@ -11,9 +11,9 @@ and the waits for room of ``record_block``), as it finishes the group: :func:`be
 :func:`hold` before each tick, :func:`publish` after it, :func:`end`.
 
 The relay's tuple (:func:`wire_args`, or :data:`OFF` for a call that sends nothing):
-``(on, every, ctl, busy, wire, rows_u8, rows, compute_col, k0)``; ``ctl`` holds the cells
-below, ``busy[g]`` group ``g``'s compute time (ns, the waits for room left out), also
-written into its rows' ``compute_col`` before they leave. A group the recorder did not take
+``(on, every, ctl, wire, rows_u8, rows, compute_col, k0)``; ``ctl`` holds the cells below.
+Each group's compute time (the waits for room left out) is written into its rows'
+``compute_col`` before they leave. A group the recorder did not take
 (no room in time, the process gone or closed) stops the call before its next tick; the
 caller reads why from the wire.
 """
@@ -36,19 +36,18 @@ PUB, ABORT, TAIL_NS, BUSY_NS, STRETCH_T0 = range(5)
 CTL_SIZE = 5
 
 
-def wire_args(every: int, ctl: np.ndarray, busy: np.ndarray, wire: tuple, rows: np.ndarray,
-              compute_col: int, k0: int) -> tuple:
+def wire_args(every: int, ctl: np.ndarray, wire: tuple, rows: np.ndarray, compute_col: int,
+              k0: int) -> tuple:
     """The tuple of a call from tick ``k0`` that sends each group of ``every`` ticks
     through ``wire`` (:meth:`~dentibot.telemetry.recorder_process.Wire.begin`'s arguments):
     ``rows`` (float64, C order) are the call's rows, ``compute_col`` their compute time's
-    column; ``ctl`` (zeroed here) and ``busy`` as the module docstring says."""
+    column; ``ctl`` (zeroed here) as the module docstring says."""
     ctl[:] = 0
-    return (True, int(every), ctl, busy, wire, rows.view(np.uint8), rows, int(compute_col),
-            int(k0))
+    return (True, int(every), ctl, wire, rows.view(np.uint8), rows, int(compute_col), int(k0))
 
 
 #: the tuple of a call that sends nothing (the same types: no other compilation)
-OFF = (False, 1, np.zeros(CTL_SIZE, dtype=np.int64), np.zeros(1, dtype=np.int64),
+OFF = (False, 1, np.zeros(CTL_SIZE, dtype=np.int64),
        (np.zeros(ST_SIZE, dtype=np.int64), np.zeros(1, dtype=np.uint8), 0, 0, 0,
         np.zeros(1, dtype=np.uint8), np.zeros(1, dtype=np.uint8)),
        np.zeros((1, 8), dtype=np.uint8), np.zeros((1, 1)), 0, 0)
@@ -64,8 +63,8 @@ def begin(relay) -> None:
 
 
 @njit(cache=True)
-def hold(relay, i) -> bool:
-    """Before tick ``i``: False when the call must stop (a group was not taken)."""
+def hold(relay) -> bool:
+    """Before a tick: False when the call must stop (a group was not taken)."""
     return relay[2][ABORT] == 0
 
 
@@ -73,12 +72,11 @@ def hold(relay, i) -> bool:
 def publish(relay, i) -> None:
     """After tick ``i``'s row is written: send the group it completes, if it does, its
     compute time written in its rows first."""
-    on, every, ctl, busy = relay[0], relay[1], relay[2], relay[3]
+    on, every, ctl = relay[0], relay[1], relay[2]
     if not on or (i + 1) % every != 0:
         return
-    (st, msg, head_size, k0_at, n_at, incoming, flush), rows_u8, rows, col, k0 = relay[4:]
+    (st, msg, head_size, k0_at, n_at, incoming, flush), rows_u8, rows, col, k0 = relay[3:]
     busy_ns = ctl[BUSY_NS] + now_ns() - ctl[STRETCH_T0]
-    busy[(i + 1) // every - 1] = busy_ns
     start = i + 1 - every
     us = busy_ns / every / 1000.0
     for r in range(start, i + 1):

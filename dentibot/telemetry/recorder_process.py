@@ -79,7 +79,7 @@ CHILD_COUNTERS = ("ticks_written", "events_written", "rows_rejected", "rows_inva
 #: A flush's report, the child's most frequent message, packed rather than pickled (a
 #: pickled tuple with the counters' dict cost 20-30 us a flush at each end): this tag, the
 #: ticks settled, then CHILD_COUNTERS in order (int64). Other reports are pickles.
-_FLUSHED = b"F"
+_FLUSHED = wk.FLUSHED_TAG
 _FLUSHED_BODY = struct.Struct(f"<{1 + len(CHILD_COUNTERS)}q")
 START_TIMEOUT_S = 30.0       # the fork server's first start imports this module
 CLOSE_TIMEOUT_S = 120.0      # the child writes out at most a budget of rows, then the summary
@@ -327,14 +327,19 @@ class RecorderProcess(RecorderBase):
         try:
             self._rows.send_bytes(data)
         except OSError as exc:                    # the child is gone
-            self._read_acks()
-            if self._dead is None:
-                self._dead = TelemetryError(self.path, f"the recorder process is gone (exit "
-                                            f"code {self._proc.exitcode}): {exc}")
+            self._gone(str(exc))
             if raise_dead:
                 self._raise_dead()
             return
         self._read_acks()
+
+    def _gone(self, why: str) -> None:
+        """Writing to the child failed (``why``): what it reported last is read, and the
+        recorder is dead, with the child's own report if it sent one."""
+        self._read_acks()
+        if self._dead is None:
+            self._dead = TelemetryError(self.path, f"the recorder process is gone (exit code "
+                                        f"{self._proc.exitcode}): {why}")
 
     def _read_acks(self, timeout: float = 0.0) -> bool:
         """Read what the child reported; wait up to ``timeout`` for the first message.
@@ -527,10 +532,7 @@ class Wire:
                 rec._on_ack(_ack(data))
                 rec._read_acks()
         if status == wk.PIPE:
-            rec._read_acks()
-            if rec._dead is None:
-                rec._dead = TelemetryError(rec.path, f"the recorder process is gone (exit "
-                                           f"code {rec._proc.exitcode})")
+            rec._gone("its pipe failed")
         if rec._dead is not None:
             rec._raise_dead()
         if status == wk.NO_ROOM:

@@ -23,7 +23,7 @@ from numba import njit
 
 from dentibot.telemetry.fd_kernels import EINTR, errno, fd_poll, fd_read, fd_write, now_ns
 
-__all__ = ["NO_ROOM", "OK", "OTHER", "PIPE", "send_block"]
+__all__ = ["FLUSHED_TAG", "NO_ROOM", "OK", "OTHER", "PIPE", "send_block"]
 
 #: ``st``'s cells: ticks handed over, ticks the process reported on disk, the budget of ticks
 #: at risk, the two pipes' descriptors, the longest wait for room (ms), the most ticks at
@@ -35,7 +35,9 @@ ST_SIZE = 11
 #: outcomes: sent; no room within the longest wait (an overflow); a report that is not a
 #: flush; the pipe failed (the process is gone)
 OK, NO_ROOM, OTHER, PIPE = range(4)
-_FLUSHED_TAG = ord("F")
+#: the first byte of the process's flush report (the others are pickles, from 0x80)
+FLUSHED_TAG = b"F"
+_FLUSHED_BYTE = FLUSHED_TAG[0]
 _RETRIES = 1000                 # an interrupted call is tried again; a failing one is not
 
 
@@ -71,7 +73,7 @@ def _report(st, incoming, flush) -> bool:
     if not _io_all(fd, incoming, 4, size, True):
         st[STATUS] = PIPE
         return False
-    if incoming[4] != _FLUSHED_TAG:
+    if incoming[4] != _FLUSHED_BYTE:
         st[STATUS], st[OTHER_LEN], st[OTHER_READ] = OTHER, size, 1
         return False
     for b in range(size):
