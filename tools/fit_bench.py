@@ -189,10 +189,28 @@ def fit_noise(traj: pd.DataFrame) -> dict:
     return {"noise_n": sd}
 
 
-def fit_axial(traj: pd.DataFrame, arm: dict) -> dict:
+def lowpass_from_chatter(f_hz: float, dead_ms: float, tau_ms: float) -> float:
+    """The reading's low-pass time constant (ms) that turns the seated file's axial loop by
+    -180 deg at ``f_hz``, the frequency it chatters at: the admittance's integration (-90
+    deg), the arm's dead time and lag, and the low-pass make up the half turn."""
+    w = 2 * math.pi * f_hz
+    rest = math.pi / 2 - w * dead_ms / 1000 - math.atan(w * tau_ms / 1000)
+    return 1000 * math.tan(rest) / w
+
+
+def loop_gain(f_hz: float, gain: float, tau_ms: float, lowpass_ms: float, bottom_n_mm: float,
+              k_over_b: float = 6.25) -> float:
+    """The seated loop's gain at ``f_hz`` (about 1 where it chatters undamped)."""
+    w = 2 * math.pi * f_hz
+    return (k_over_b * gain * bottom_n_mm / w / math.hypot(1, w * tau_ms / 1000)
+            / math.hypot(1, w * lowpass_ms / 1000))
+
+
+def fit_axial(traj: pd.DataFrame, arm: dict, lowpass_ms: float) -> dict:
     """Canal drag and bottom stiffness: least squares of the reduced axial model
-    (dentibot.sim.bench_physics.axial_chase) on the tip-root distance along z of the three
-    recorded trials, given the platform's recorded z and the fitted arm."""
+    (dentibot.sim.bench_physics.axial_chase) on the tip-root distance along z and the
+    contact force of the three recorded trials, given the platform's recorded z, the fitted
+    arm and the reading's low-pass ``lowpass_ms``; also with an unfiltered reading."""
     from dentibot.sim.bench_physics import axial_chase
 
     runs = []
@@ -203,21 +221,25 @@ def fit_axial(traj: pd.DataFrame, arm: dict) -> dict:
                      g.rel_tip_z_mm.to_numpy() - g.rel_tip_z_mm.to_numpy()[:40].mean(),
                      g.contact_h_Fz_N.to_numpy()))
 
-    def res(p):
+    def res(p, lp):
         out = []
         for cfg, t, pz, rel, fz in runs:
             sim = axial_chase(t, pz, cfg, arm_gain=arm["gain"], dead_ms=arm["delay_ms"],
-                              tau_ms=arm["tau_ms"], drag_n_s_per_mm=p[0],
-                              coulomb_n=p[1], bottom_n_mm=p[2])
+                              tau_ms=arm["tau_ms"], drag_n_s_per_mm=p[0], still_factor=p[1],
+                              coulomb_n=p[2], bottom_n_mm=p[3], lowpass_ms=lp)
             out.append(sim["gap_mm"] - rel)
             out.append(0.5 * (sim["fz_h_n"] - fz))
         return np.concatenate(out)
 
-    fit = least_squares(res, [0.1, 0.3, 2.0], bounds=([0.0, 0.0, 0.3], [2.0, 3.0, 30.0]),
-                        diff_step=[0.05, 0.05, 0.05])
-    r = res(fit.x)
-    return {"drag_n_s_per_mm": fit.x[0], "coulomb_n": fit.x[1], "bottom_n_mm": fit.x[2],
-            "rms": float(np.sqrt(np.mean(r ** 2)))}
+    out = {}
+    for name, lp in (("filtered", lowpass_ms), ("unfiltered", 0.0)):
+        fit = least_squares(res, [0.1, 1.5, 0.3, 3.0], args=(lp,),
+                            bounds=([0.0, 1.0, 0.0, 0.3], [2.0, 10.0, 3.0, 30.0]),
+                            diff_step=[0.05] * 4)
+        out[name] = {"drag_n_s_per_mm": fit.x[0], "still_factor": fit.x[1],
+                     "coulomb_n": fit.x[2], "bottom_n_mm": fit.x[3], "lowpass_ms": lp,
+                     "rms": float(np.sqrt(np.mean(res(fit.x, lp) ** 2)))}
+    return out
 
 
 def main(argv=None) -> int:
@@ -262,12 +284,23 @@ def main(argv=None) -> int:
     nz = fit_noise(traj)
     print(f"F/T noise at 100 Hz: Fx {nz['noise_n'][0]:.3f} N, Fy {nz['noise_n'][1]:.3f} N")
     if not a.skip_axial:
-        ax = fit_axial(traj, {"gain": trials.realised_gain_vmeas_over_vcmd.median(),
-                              "delay_ms": trials.fit_delay_ms_z.median(),
-                              "tau_ms": trials.fit_tau_ms_z.median()})
-        print(f"canal axial: drag {ax['drag_n_s_per_mm']:.3f} N per mm/s, Coulomb "
-              f"{ax['coulomb_n']:.3f} N, bottom {ax['bottom_n_mm']:.2f} N/mm "
-              f"(rms residual {ax['rms']:.3f})")
+        arm_t = {"gain": trials.realised_gain_vmeas_over_vcmd.median(),
+                 "delay_ms": trials.fit_delay_ms_z.median(),
+                 "tau_ms": trials.fit_tau_ms_z.median()}
+        chat = trials[trials.group.isin(["A_K500_fz1.0", "B_K500_fz1.0"])].Fz_chatter_peak_hz
+        f_hz = float(chat.median())
+        lp = lowpass_from_chatter(f_hz, arm_t["delay_ms"], arm_t["tau_ms"])
+        print(f"the reading's low-pass: {lp:.0f} ms turns the seated loop by -180 deg at the "
+              f"recorded chatter, {f_hz:.2f} Hz (median peak of A and B at 1 N, "
+              f"{chat.min():.2f}-{chat.max():.2f})")
+        ax = fit_axial(traj, arm_t, lp)
+        for name, v in ax.items():
+            print(f"canal axial, {name} reading: drag {v['drag_n_s_per_mm']:.3f} N per mm/s "
+                  f"off the seat ({v['still_factor']:.2f} times that for a still file), "
+                  f"Coulomb {v['coulomb_n']:.3f} N, bottom {v['bottom_n_mm']:.2f} N/mm "
+                  f"(rms residual {v['rms']:.3f})")
+        g = loop_gain(f_hz, arm_t["gain"], arm_t["tau_ms"], lp, ax["filtered"]["bottom_n_mm"])
+        print(f"  the seated loop's gain at {f_hz:.2f} Hz: {g:.2f} (1: it chatters undamped)")
     return 0
 
 

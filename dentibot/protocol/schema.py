@@ -189,8 +189,8 @@ class SimulatorSpec(Strict):
                              "realised)")
     canal_drag: Literal["none", "bench"] = Field(
         "none", description="the canal walls' drag on the file: none, or bench (fitted to the "
-                            "bench's recordings: 0.11 N per mm/s and 0.34 N of Coulomb "
-                            "friction along the canal, 1.5 times that for a still file, "
+                            "bench's recordings: 0.19 N per mm/s along the canal while "
+                            "the file slides off its seat, 6 times that for a still file, "
                             "0.10 N per mm/s across it)")
 
 

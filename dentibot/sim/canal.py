@@ -128,8 +128,8 @@ class CanalParams:
     # ``drag_filter_s``); the walls resist it with ``drag_n_s_per_mm * u + drag_coulomb_n *
     # tanh(u / drag_v0_mm_s)`` (N). While the root recedes from the file (u < 0) that pulls
     # the file along into the canal: the contact force in {H} turns to tension. A file that
-    # does not turn also sticks: the Coulomb part is ``drag_static_factor`` times larger
-    # (static friction; a turning file breaks it). Laterally the walls damp the file's
+    # does not turn is dragged ``drag_static_factor`` times harder, both parts (its flutes
+    # do not unscrew it from the walls' grip as a turning file's do). Laterally the walls damp the file's
     # sliding across the canal with ``drag_lat_n_s_per_mm`` (N per mm/s) while it touches
     # them. The bench preset (:mod:`dentibot.sim.bench_physics`) holds the fitted values.
     drag_n_s_per_mm: float = 0.0

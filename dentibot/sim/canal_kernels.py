@@ -115,7 +115,8 @@ def interact(st: np.ndarray, cp: np.ndarray, R: np.ndarray, h: np.ndarray, s: np
     st[_TAU_EDGES] = 0.0
     drag = cp[_DRAG] != 0.0
     if drag:
-        st[_SLIP] += (raw - st[_SLIP]) * (dt / (cp[_DRAG_TAU] + dt))
+        u = raw if s_tip <= cp[_BOTTOM] else 0.0
+        st[_SLIP] += (u - st[_SLIP]) * (dt / (cp[_DRAG_TAU] + dt))
     if s_tip <= 0.0:
         st[_DEBRIS] = 0.0
         st[_ENTERED] = 0.0
@@ -217,8 +218,8 @@ def _drag_forces(st: np.ndarray, cp: np.ndarray, out: np.ndarray, eu: float, ev:
     """Canal drag: adds the lateral damping to the lateral loads in ``out`` and returns the
     axial drag (N, + pushes the file out)."""
     u = st[_SLIP]
-    fc = cp[_DRAG_C] * (1.0 if st[_TURNING] != 0.0 else cp[_DRAG_STATIC])
-    fa = cp[_DRAG_B] * u + fc * math.tanh(u / cp[_DRAG_V0])
+    still = 1.0 if st[_TURNING] != 0.0 else cp[_DRAG_STATIC]
+    fa = (cp[_DRAG_B] * u + cp[_DRAG_C] * math.tanh(u / cp[_DRAG_V0])) * still
     had, last_u, last_v = st[_HAS_E], st[_EU], st[_EV]
     st[_HAS_E], st[_EU], st[_EV] = 1.0, eu, ev
     if cp[_DRAG_LAT] != 0.0 and had != 0.0 and (

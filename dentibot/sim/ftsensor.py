@@ -6,7 +6,9 @@
     f   = f0 + f_g + f_e          f_g = m * Rz(th)^T 0R_6^T (0, 0, -g)
     tau = tau0 + r x f_g + tau_e  (torques about the {S} origin, N*m; r in m)
 
-plus Gaussian noise, quantised to the Mini40 resolution and saturated at its range (status bit
+plus Gaussian noise, through an optional first-order low-pass filter (``lowpass_s``: the
+sensor's own filter setting and whatever the reading passes through before the controller
+reads it), quantised to the Mini40 resolution and saturated at its range (status bit
 ``WRENCH_SATURATED``). ``bias()`` tares: the current reading becomes zero.
 """
 
@@ -48,13 +50,22 @@ class FTSensorParams:
     # assumption: noise about one resolution step rms (N, N*m).
     noise_n: tuple = (0.01, 0.01, 0.02)
     noise_nm: float = 0.0003
+    # time constant (s) of a first-order low-pass on the reading, sampled every world period;
+    # 0: none (the default world's sensor is read unfiltered).
+    lowpass_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.lowpass_s) and self.lowpass_s >= 0.0):
+            raise ValueError(f"lowpass_s {self.lowpass_s!r}: a time constant >= 0 s")
 
 
 class FTSensorModel:
     """The sensor (its state in the arrays of :mod:`dentibot.sim.ftsensor_kernels`, whose
     kernels :meth:`sample` and :meth:`true_wrench` call)."""
 
-    def __init__(self, params: FTSensorParams, rng: np.random.Generator) -> None:
+    def __init__(self, params: FTSensorParams, rng: np.random.Generator,
+                 period_s: float = 0.002) -> None:
+        """``period_s``: how often the world samples it (the low-pass filter's step)."""
         self.p = p = params
         self.rng = rng
         off = rng.standard_normal(6)
@@ -70,6 +81,7 @@ class FTSensorModel:
             "rx_m": p.centroid_mm[0] * 1e-3, "ry_m": p.centroid_mm[1] * 1e-3,
             "rz_m": p.centroid_mm[2] * 1e-3, "offset_mm": p.offset_mm,
             "saturated": WRENCH_SATURATED,
+            "lp_keep": math.exp(-period_s / p.lowpass_s) if p.lowpass_s > 0.0 else 0.0,
             **{f"offset{i}": x for i, x in enumerate(self.f0 + self.tau0)},
             **{f"res{i}": x for i, x in enumerate(res)},
             **{f"inv_res{i}": 1.0 / x for i, x in enumerate(res)},

@@ -1,5 +1,5 @@
 """The F/T sensor's reading, compiled (numba): gravity and the external wrench in {S},
-offsets, noise, saturation and quantisation, on arrays.
+offsets, noise, the reading's low-pass filter, saturation and quantisation, on arrays.
 
 These kernels are the only implementation of the sensor's model (explained in
 :mod:`dentibot.sim.ftsensor`, whose :class:`~dentibot.sim.ftsensor.FTSensorModel` calls
@@ -24,6 +24,8 @@ STATE_FIELDS = (
     *(f"tare{i}" for i in range(6)),
     "status",
     "k",            # next row of the noise block
+    *(f"filt{i}" for i in range(6)),   # the low-pass filter's output (before saturation)
+    "primed",       # 1 once the filter holds a reading
 )
 #: The sensor's constants.
 PARAM_FIELDS = (
@@ -36,14 +38,15 @@ PARAM_FIELDS = (
     *(f"range{i}" for i in range(6)),    # saturation (N, N*m)
     "offset_mm",    # {S} origin along the flange z (mm)
     "saturated",    # the status word's saturation bit
+    "lp_keep",      # the low-pass filter's exp(-period / time constant); 0: no filter
 )
 
 S = {name: i for i, name in enumerate(STATE_FIELDS)}
 P = {name: i for i, name in enumerate(PARAM_FIELDS)}
 
-_LAST, _RAW, _TARE, _STATUS, _K = 0, 6, 12, 18, 19
+_LAST, _RAW, _TARE, _STATUS, _K, _FILT, _PRIMED = 0, 6, 12, 18, 19, 20, 26
 _WEIGHT, _COS, _SIN, _RX, _RY, _RZ = 0, 1, 2, 3, 4, 5
-_OFFSET, _RES, _INV_RES, _RANGE, _OFFSET_MM, _SATURATED = 6, 12, 18, 24, 30, 31
+_OFFSET, _RES, _INV_RES, _RANGE, _OFFSET_MM, _SATURATED, _LP_KEEP = 6, 12, 18, 24, 30, 31, 32
 #: Indices other kernels use (compiled constants).
 P_OFFSET_MM = _OFFSET_MM
 
@@ -80,15 +83,23 @@ def true_wrench(sp: np.ndarray, F: np.ndarray, fx0: float, fy0: float, fz0: floa
 @njit(cache=True)
 def sample(ss: np.ndarray, sp: np.ndarray, noise: np.ndarray, F: np.ndarray, fx0: float,
            fy0: float, fz0: float, ta: float, tb: float, tc: float) -> None:
-    """One reading: :func:`true_wrench` plus offsets and noise, saturated, quantised and
-    tared, into ``ss`` (``last``, ``raw``, ``status``). ``noise[ss[k]]`` must exist."""
+    """One reading: :func:`true_wrench` plus offsets and noise, through the first-order
+    low-pass filter (``y += (x - y) (1 - keep)``, the first reading taken as it is),
+    saturated, quantised and tared, into ``ss`` (``last``, ``raw``, ``status``).
+    ``noise[ss[k]]`` must exist."""
     w = np.empty(6)
     true_wrench(sp, F, fx0, fy0, fz0, ta, tb, tc, w)
     k = int(ss[_K])
     ss[_K] = k + 1
     status = 0.0
+    keep = sp[_LP_KEEP]
+    primed = ss[_PRIMED] != 0.0
     for i in range(6):
         x = w[i] + sp[_OFFSET + i] + noise[k, i]
+        if keep != 0.0:
+            if primed:
+                x = ss[_FILT + i] + (x - ss[_FILT + i]) * (1.0 - keep)
+            ss[_FILT + i] = x
         lim = sp[_RANGE + i]
         if x >= lim:
             x, status = lim, sp[_SATURATED]
@@ -98,6 +109,7 @@ def sample(ss: np.ndarray, sp: np.ndarray, noise: np.ndarray, F: np.ndarray, fx0
         ss[_RAW + i] = raw
         ss[_LAST + i] = raw - ss[_TARE + i]
     ss[_STATUS] = status
+    ss[_PRIMED] = 1.0
 
 
 def warm_up() -> None:

@@ -85,7 +85,8 @@ class World:
         s_sensor, s_motor, s_patient = root.spawn(3)
         self.kin = Meca500(tool=cfg.tool)
         self.arm = SimArmModel(self.kin, cfg.q0_deg, cfg.arm)
-        self.sensor = FTSensorModel(cfg.sensor, np.random.default_rng(s_sensor))
+        self.sensor = FTSensorModel(cfg.sensor, np.random.default_rng(s_sensor),
+                                    period_s=cfg.ts)
         self.handpiece = HandpieceModel(cfg.handpiece, np.random.default_rng(s_motor))
         self.canal = Canal(cfg.canal)
         #: the world's state and constants (:mod:`dentibot.sim.world_kernels`)

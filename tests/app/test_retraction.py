@@ -1,5 +1,5 @@
 """A retraction is waited for as long as it brings the file out: a canal that drags the file
-slows it (the -0.5 N retraction withdraws about 3 mm/s in a drag-free canal, 0.7 mm/s with
+slows it (the -0.5 N retraction withdraws about 3 mm/s in a drag-free canal, 1.4 mm/s with
 the bench's drag) without ending the wait; a file that does not come out is said to be stuck,
 with where it is."""
 
@@ -41,14 +41,17 @@ async def test_a_dragging_canal_slows_the_retraction_and_the_wait_goes_on():
         rt = proc.runtime
         assert why is None and rt.state == "done"
         assert rt.last.depth_mm <= rt.cfg.plan.retract_to_mm
-    # 14.5 mm and more at under 1 mm/s: longer than a drag-free retraction's 5 s, and more
-    # than 20 s
-    assert took_s > 20.0
+    # The admittance withdraws at k/b (0.5 N - c v) = v (6.25 mm/s per N, the ideal arm):
+    # v = 3.125 / (1 + 6.25 c) with the drag's c N per mm/s, against 3.125 mm/s without it;
+    # about 15 mm to go (from past 14 mm to 0.5 mm out)
+    v = 3.125 / (1.0 + 6.25 * BENCH.drag_n_s_per_mm)
+    assert took_s == pytest.approx(15.0 / v, rel=0.15)
+    assert took_s > 2.0 * 15.0 / 3.125
 
 
 async def test_a_file_that_does_not_come_out_is_reported_stuck():
-    """The bench's drag (0.34 N on a turning file, 0.51 N on a still one) against a
-    retraction of 0.05 N: the file does not come out."""
+    """The bench's drag against a retraction of 0.05 N: the file comes out at about
+    0.14 mm/s (k/b 0.05 N / (1 + 6.25 c)), too slowly for the wait: it is said to stall."""
     proc = Procedure.simulated(WorldConfig(seed=1, canal=BENCH.canal_drag(CanalParams())))
     rt = proc.runtime
     async with proc:
