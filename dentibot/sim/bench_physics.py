@@ -58,24 +58,26 @@ class BenchPhysics:
     # (queue, filter, SetVelTimeout) reproduces a steady 0.8 with a command renewed every
     # period, so it is kept as the measured ratio.
     arm_gain: float = 0.804
-    # --- the force the bench's controller read: first-order low-pass, 110 ms. The recorded
+    # --- the force the bench's controller read: first-order low-pass, 113 ms. The recorded
     # contact force lags the file's motion: at rest with the file bottomed out, the axial
-    # loop chatters at 2.8-3.3 Hz (the recordings' Fz_chatter_peak_hz, A and B), where the
-    # arm alone (dead time and lag above) turns it by only 24 deg past the admittance's
-    # integration; a contact cannot lag (it is passive), the reading can (the sensor's
-    # filter and the bench's processing). Least squares of :func:`axial_chase` with the
-    # time constant as a fourth parameter (tool: "canal axial"): rms residual 0.298 against
-    # 0.448 with an unfiltered reading; 80-150 ms fit within 0.006 of each other. Independent
-    # check: with these values the loop's phase reaches -180 deg at 3.1 Hz.
+    # loop chatters at 2.8-3.3 Hz (the recordings' Fz_chatter_peak_hz, A and B at 1 N),
+    # where the arm alone (dead time and lag above) turns it by only 24 deg past the
+    # admittance's integration; a contact cannot lag (it is passive), the reading can (the
+    # sensor's filter and the bench's processing). The time constant is the one that makes
+    # up the half turn at the chatter's median peak, 3.08 Hz (tool: "the reading's
+    # low-pass"). Least squares of :func:`axial_chase` with the time constant free as well
+    # put it at 80 ms, residual 0.313 against 0.315 at 113 ms: the time series hardly tell.
     ft_lowpass_s: float = 0.113
     # --- canal, axial: drag and the bottom's stiffness, least squares of
     # :func:`axial_chase` on the three recorded trials' tip-root distance and contact force
-    # along z, with the reading's low-pass above (tool: "canal axial": 0.186 N per mm/s for
-    # a turning file, 3.2 times that for the still file of A, no Coulomb part (it fits to
-    # 0.000 N: a turning file slides out almost freely), 10.1 N/mm; rounded to 0.01 N per
-    # mm/s, 0.1 and 0.1 N/mm). With an unfiltered reading the same fit gave 0.10 N per mm/s,
-    # 0.35 N of Coulomb drag and 2.6 N/mm: the drag's steep Coulomb part then stood in for
-    # the lag, and rang at 19 Hz through the arm's delay.
+    # along z, with the reading's low-pass above (tool: "canal axial, filtered reading":
+    # 0.189 N per mm/s while the file slides off its seat, 5.98 times that for the still
+    # file of A, Coulomb 0.000 N (a turning file slides out almost freely), 7.41 N/mm;
+    # residual 0.315; rounded to 0.01 N per mm/s, 0.1 and 0.1 N/mm). Pressed into its seat
+    # the file does not slide along the walls. On an unfiltered reading the same model fits
+    # worse (residual 0.338); the world before it (drag on the seated file too, 0.11 N per
+    # mm/s, 0.34 N of Coulomb drag, 2.7 N/mm) had 0.448, its steep Coulomb part standing in
+    # for the lag and ringing at 19 Hz through the arm's delay.
     drag_n_s_per_mm: float = 0.19
     drag_coulomb_n: float = 0.0
     drag_v0_mm_s: float = 0.5
@@ -249,9 +251,8 @@ def axial_chase(t, platform_z_mm, config: str, arm_gain: float = BENCH.arm_gain,
     or 3.125 for C_K250) on the force read through the first-order low-pass ``lowpass_ms``,
     through the arm's dead time, lag and gain; the canal bottom a spring, the walls dragging
     the file off its seat (``still_factor`` times harder in A, whose file does not turn).
-    Returns at the
-    times ``t``: ``gap_mm`` (tip out of its seat, + out) and ``fz_h_n`` (the contact force
-    along the file in {H} as read, + tension)."""
+    Returns at the times ``t``: ``gap_mm`` (tip out of its seat, + out) and ``fz_h_n`` (the
+    contact force along the file in {H} as read, + tension)."""
     t = np.asarray(t, float)
     pz = np.asarray(platform_z_mm, float)
     tt = np.arange(t[0], t[-1], ts)

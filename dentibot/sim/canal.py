@@ -125,11 +125,13 @@ class CanalParams:
     feed_filter_s: float = 0.05
     # Canal drag on the file (all zero by default: no drag). The file slides along the canal
     # at the slip rate ``u`` (mm/s, + deeper; the depth rate low-passed with
-    # ``drag_filter_s``); the walls resist it with ``drag_n_s_per_mm * u + drag_coulomb_n *
-    # tanh(u / drag_v0_mm_s)`` (N). While the root recedes from the file (u < 0) that pulls
-    # the file along into the canal: the contact force in {H} turns to tension. A file that
-    # does not turn is dragged ``drag_static_factor`` times harder, both parts (its flutes
-    # do not unscrew it from the walls' grip as a turning file's do). Laterally the walls damp the file's
+    # ``drag_filter_s``; 0 while the tip is pressed into the bottom, where the seat gives
+    # and the file does not slide along the walls); the walls resist it with
+    # ``drag_n_s_per_mm * u + drag_coulomb_n * tanh(u / drag_v0_mm_s)`` (N). While the root
+    # recedes from the file (u < 0) that pulls the file along into the canal: the contact
+    # force in {H} turns to tension. A file that does not turn is dragged
+    # ``drag_static_factor`` times harder, both parts (its flutes do not work it loose from
+    # the walls as a turning file's do). Laterally the walls damp the file's
     # sliding across the canal with ``drag_lat_n_s_per_mm`` (N per mm/s) while it touches
     # them. The bench preset (:mod:`dentibot.sim.bench_physics`) holds the fitted values.
     drag_n_s_per_mm: float = 0.0
