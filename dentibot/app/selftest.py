@@ -74,6 +74,12 @@ class FaultResult:
     #: the bounds ``ok`` held ``detected_ms`` and ``file_stopped_ms`` to (None: none)
     detected_bound_ms: float | None = None
     file_stopped_bound_ms: float | None = None
+    #: the worst stall of the event loop the run shared with the simulators (ms; None: not
+    #: measured, the in-process runs being lock-step)
+    loop_stall_ms: float | None = None
+    #: the worst request round trip on the link the fault was injected on, where the
+    #: detection bound depends on it (ms; None: it does not)
+    round_trip_ms: float | None = None
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)

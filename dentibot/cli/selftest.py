@@ -64,6 +64,12 @@ def cmd_faults(args: argparse.Namespace) -> int:
         for r in results:
             if r.cause:
                 console.print(f"{r.fault}: {r.cause.split('; ')[0]}", highlight=False)
+        for r in results:
+            if not r.ok and (r.loop_stall_ms or 0.0) > WIRE_SLACK_MS:
+                console.print(f"{r.fault}: this process's event loop (the runtime's and the "
+                              f"simulators') stalled {r.loop_stall_ms:.0f} ms during the run, "
+                              f"beyond the {WIRE_SLACK_MS:g} ms allowed: the machine was busy; "
+                              "run it again on a quieter one", highlight=False)
     return 0 if all(r.ok for r in results) else 1
 
 

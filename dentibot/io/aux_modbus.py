@@ -20,10 +20,11 @@ counted and logged (on change, not at the poll rate) and never stop the task.
 
 Host watchdog (map 1.1): on a 1.1+ device, ``connect()`` (and every reconnection) writes
 ``watchdog_ms`` to HR 7 and a counter to HR 6, and the poll task writes both again (one FC16
-of HR 6-7: a new counter feeds the watchdog, the time re-arms it) every quarter of the
-watchdog time, so the device holds the platform, lights FAULT and opens its host-lost output
-(in the clinic's safety chain: the handpiece drive's STO) when DentiBot dies or the link
-breaks for longer than that. Modbus TCP has no authentication and any client may write HR 6-7:
+of HR 6-7: a new counter feeds the watchdog, the time re-arms it) once a quarter of the
+watchdog time has passed since the last feed (by the clock, not by counting polls: polls
+slowed by long round trips must not stretch it), so the device holds the platform, lights
+FAULT and opens its host-lost output (in the clinic's safety chain: the handpiece drive's STO)
+when DentiBot dies or the link breaks for longer than that. Modbus TCP has no authentication and any client may write HR 6-7:
 a second client that switched the watchdog off (``watchdog_ms`` = 0), re-timed it, or fed it
 (hiding this host's death) would go unnoticed by a driver that only writes. So every poll
 period the driver also reads HR 6-7 back (FC3) before any write of its own, and a value it did
@@ -40,7 +41,9 @@ connection and never answers is a fault, never a hang.
 Counters: ``polls`` (requests sent), ``received`` (well-formed answers), ``unchanged`` (answers
 with the same heartbeat), ``errors`` (failed polls), ``lost`` (poll periods skipped because a
 poll or the event loop overran), ``reconnects``, ``writes``, ``feeds`` (watchdog writes);
-``readbacks`` (watchdog read-backs); ``seq`` is the sample count.
+``readbacks`` (watchdog read-backs); ``seq`` is the sample count. Round trips: ``request_ms``
+(the newest request's, sent to answered) and ``request_ms_worst`` (the longest since
+:meth:`AuxModbusDriver.reset_request_times`), which bound how late a poll can see a change.
 """
 
 from __future__ import annotations
@@ -144,8 +147,11 @@ class AuxModbusDriver:
         self.reconnect_period_s = float(reconnect_period_s)
         self.connect_timeout_s = float(connect_timeout_s)
         self.watchdog_ms = check_watchdog_ms(watchdog_ms)
-        #: feed the watchdog every this many polls (a quarter of its time)
-        self._feed_every = max(1, int(watchdog_ms / 4000.0 / self.poll_period_s))
+        #: feed the watchdog when this long has passed since the last feed (s)
+        self._feed_after_s = watchdog_ms / 4000.0
+        self._fed_at = -math.inf                 # monotonic time of the last feed sent
+        #: request round trips (ms): the newest and the longest since reset_request_times()
+        self.request_ms = self.request_ms_worst = 0.0
         self._watchdog_on = False
         self.polls = self.received = self.unchanged = self.errors = self.lost = 0
         self.reconnects = self.writes = self.seq = self.feeds = self.readbacks = 0
@@ -275,7 +281,7 @@ class AuxModbusDriver:
                 if self._watchdog_on:
                     try:
                         await self._check_watchdog()
-                        if self.polls % self._feed_every == 0:
+                        if time.monotonic() - self._fed_at >= self._feed_after_s:
                             await self._feed()
                     except DeviceFault as exc:
                         self._fail(str(exc))
@@ -316,6 +322,7 @@ class AuxModbusDriver:
         watchdog time (re-arms it, restoring it if someone changed it)."""
         value = (self.feeds + 1) & 0xFFFF or 1
         self._fed_value = None                  # unknown until the device acknowledged
+        self._fed_at = time.monotonic()
         await self._send("the host watchdog", self._client.write_registers,
                          point(Table.HOLDING_REGISTER, "host_watchdog").address,
                          [value, self.watchdog_ms])
@@ -329,8 +336,8 @@ class AuxModbusDriver:
             return
         first = point(Table.HOLDING_REGISTER, "host_watchdog").address
         try:
-            rr = await self._client.read_holding_registers(first, count=2,
-                                                           device_id=self.device_id)
+            rr = await self._timed(self._client.read_holding_registers, first, count=2,
+                                   device_id=self.device_id)
         except ModbusException as exc:
             raise DeviceFault(DEVICE, f"no answer reading the host watchdog back ({exc})"
                               ) from exc
@@ -361,8 +368,8 @@ class AuxModbusDriver:
         first, n = span(Table.INPUT_REGISTER)
         self.polls += 1
         try:
-            rr = await self._client.read_input_registers(first, count=n,
-                                                         device_id=self.device_id)
+            rr = await self._timed(self._client.read_input_registers, first, count=n,
+                                   device_id=self.device_id)
         except ModbusException as exc:
             self._fail(f"no answer to the input-register poll ({exc})")
             return
@@ -390,6 +397,19 @@ class AuxModbusDriver:
         self.seq += 1
         self._inputs = inp
         self._sample = AuxState(t, self.seq, inp.pedal, inp.estop, inp.platform_mm)
+
+    async def _timed(self, method, *args, **kw):
+        """One request through pymodbus, its round trip noted in ``request_ms``."""
+        t = time.monotonic()
+        try:
+            return await method(*args, **kw)
+        finally:
+            self.request_ms = (time.monotonic() - t) * 1e3
+            self.request_ms_worst = max(self.request_ms_worst, self.request_ms)
+
+    def reset_request_times(self) -> None:
+        """Start a new window for ``request_ms_worst``."""
+        self.request_ms_worst = 0.0
 
     def _fail(self, why: str) -> None:
         self.errors += 1
@@ -456,7 +476,7 @@ class AuxModbusDriver:
             raise DeviceFault(DEVICE, f"cannot write {what}: link to {self.host}:{self.port} "
                                       "down")
         try:
-            rr = await method(address, value, device_id=self.device_id)
+            rr = await self._timed(method, address, value, device_id=self.device_id)
         except ModbusException as exc:
             raise DeviceFault(DEVICE, f"no answer writing {what} ({exc})") from exc
         if rr.isError():

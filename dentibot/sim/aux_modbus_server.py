@@ -23,7 +23,12 @@ What it mirrors (addresses in :mod:`dentibot.io.aux_registers`):
   watchdog (HR 6-7, map 1.1) expired.
 
 The host watchdog is the one thing that runs between requests: a task checks it every 10 ms
-(real time, as a PLC's scan cycle would). Once armed (``watchdog_ms`` > 0), no new
+(real time, as a PLC's scan cycle would). Its time is the scan's: when this process's event
+loop stalls (a garbage collection, a compilation, a starved CPU), the scan wakes late, and
+the time beyond two scans is not counted, because a PLC on its own CPU would have gone on
+reading the host's frames meanwhile; the host's feeds, held up by the same stall, would
+otherwise trip a watchdog the real device would never trip. A host that stays silent while
+the scan runs on time trips it within the watchdog time as ever. Once armed (``watchdog_ms`` > 0), no new
 ``host_watchdog`` value for that long sets ``host_lost``, switches the DRILLING lamp off and
 the FAULT lamp on, and holds the platform setpoint where it is; the next new value clears
 ``host_lost`` (the lamps stay as they are until the host writes them). ``host_lost`` is also
@@ -72,6 +77,9 @@ from dentibot.sim.world import World
 
 log = structlog.get_logger(__name__)
 
+#: The simulated PLC's scan period (s): the host watchdog is checked once per scan.
+SCAN_S = 0.010
+
 
 def _pack_bits(bits: list[bool]) -> list[int]:
     """Bits (address 0 first) -> 16-bit words, bit 0 in the LSB of word 0 (pymodbus layout)."""
@@ -109,6 +117,8 @@ class AuxModbusServer:
         self.host_watchdog = 0
         self.host_lost = False
         self.watchdog_expiries = 0
+        #: scan time lost to stalls of this process's loop, not counted by the watchdog (s)
+        self.stalled_s = 0.0
         #: the host-lost relay output: called with True when the watchdog expires, False
         #: when the host comes back (a new host_watchdog value)
         self.host_lost_outputs: list[Callable[[bool], None]] = []
@@ -183,10 +193,17 @@ class AuxModbusServer:
     # ------------------------------------------------------------------ host watchdog
     async def _watch_host(self) -> None:
         loop = asyncio.get_running_loop()
+        scanned = loop.time()
         while True:
-            await asyncio.sleep(0.01)
+            await asyncio.sleep(SCAN_S)
+            now = loop.time()
+            stalled = now - scanned - 2 * SCAN_S    # the scan did not run (see the docstring)
+            scanned = now
+            if stalled > 0.0:
+                self._fed_at += stalled
+                self.stalled_s += stalled
             if (self.watchdog_ms and not self.host_lost
-                    and loop.time() - self._fed_at > self.watchdog_ms / 1000.0):
+                    and now - self._fed_at > self.watchdog_ms / 1000.0):
                 self.watchdog_expiries += 1
                 self.world.indicators["drilling"] = False
                 self.world.indicators["fault"] = True

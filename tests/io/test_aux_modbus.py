@@ -14,6 +14,7 @@ import math
 import re
 import socket
 import struct
+import time
 from pathlib import Path
 
 import pytest
@@ -676,6 +677,70 @@ async def test_the_device_holds_the_platform_and_lights_fault_when_the_host_goes
             await client.write_register(7, 0, device_id=1)
             await asyncio.sleep(0.25)
             assert not server.host_lost and server.watchdog_expiries == 1
+        finally:
+            client.close()
+
+
+async def test_slow_answers_stretch_neither_the_feeds_nor_go_unmeasured():
+    """A device answering every request 15 ms late (longer than the 10 ms poll period): the
+    driver still feeds the 200 ms watchdog once every quarter of it (50 ms, by the clock),
+    where counting five polls of two requests each would have stretched it to 150 ms and more;
+    and the round trips it measures are at least the 15 ms delay."""
+    world = World(WorldConfig())
+    server = AuxModbusServer(world, port=0)
+    answer = server._on_access
+
+    async def late(*args):
+        await asyncio.sleep(0.015)
+        return await answer(*args)
+    server._on_access = late
+    await server.start()
+    stepper = _Stepper(world)
+    stepper.start()
+    drv = driver(server.port)
+    try:
+        await drv.connect()
+        f0, p0, t0 = drv.feeds, drv.polls, asyncio.get_running_loop().time()
+        drv.reset_request_times()
+        await asyncio.sleep(0.6)
+        elapsed = asyncio.get_running_loop().time() - t0
+        fed = drv.feeds - f0
+        # one feed per 50 ms, each taking its own round trip: 0.6 s / (50 + 15 ms) at least
+        # 9, at most 0.6 / 0.05 + 1
+        assert 0.6 / 0.065 - 1 <= fed <= elapsed / 0.05 + 1
+        assert not server.host_lost and server.watchdog_expiries == 0
+        assert drv.polls - p0 < 0.6 / 0.030 + 1     # polls slowed down: two requests each
+        assert 15.0 <= drv.request_ms_worst < 200.0 and drv.request_ms >= 15.0
+    finally:
+        await drv.close()
+        await asyncio.sleep(0.05)                   # the late answer in flight, answered
+        await stepper.stop()
+        await server.close()
+
+
+async def test_a_stall_of_the_simulators_own_loop_is_not_the_hosts_silence():
+    """The simulated PLC's watchdog counts its scan's time: a 300 ms stall of the process that
+    runs it (the host's feed held up by the same stall) is not counted, since a PLC on its own
+    CPU would have read the host's frames meanwhile; silence while the scan runs on time still
+    trips it after the 100 ms watchdog, not before."""
+    async with rig(step=False) as (_world, server, _):
+        client = AsyncModbusTcpClient(LOCAL, port=server.port, reconnect_delay=0)
+        await client.connect()
+        try:
+            assert not (await client.write_register(7, 100, device_id=1)).isError()
+            assert not (await client.write_register(6, 1, device_id=1)).isError()
+            await asyncio.sleep(0.03)                   # scans on time: 30 ms counted
+            time.sleep(0.3)  # noqa: ASYNC251 - the stall under test: the whole process
+            await asyncio.sleep(0.03)                   # a few scans after it
+            assert not server.host_lost and server.watchdog_expiries == 0
+            # the stall beyond two scans (20 ms) is what was discounted
+            assert 0.3 - 2 * 0.010 - 0.01 <= server.stalled_s <= 0.3 + 0.05
+            # silence, the scan on time: tripped after the rest of the 100 ms, not before
+            t0 = asyncio.get_running_loop().time()
+            await _wait_for(lambda: server.host_lost, timeout=1.0)
+            counted_before = 0.03 + 0.03 + 2 * 0.010    # scans counted around the stall
+            waited = asyncio.get_running_loop().time() - t0
+            assert 0.1 - counted_before - 0.015 <= waited < 0.5
         finally:
             client.close()
 
