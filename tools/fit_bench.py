@@ -206,11 +206,14 @@ def loop_gain(f_hz: float, gain: float, tau_ms: float, lowpass_ms: float, bottom
             / math.hypot(1, w * lowpass_ms / 1000))
 
 
-def fit_axial(traj: pd.DataFrame, arm: dict, lowpass_ms: float) -> dict:
+def fit_axial(traj: pd.DataFrame, arm: dict, lowpass_ms: float,
+              bottom_n_mm: float | None = None) -> dict:
     """Canal drag and bottom stiffness: least squares of the reduced axial model
     (dentibot.sim.bench_physics.axial_chase) on the tip-root distance along z and the
     contact force of the three recorded trials, given the platform's recorded z, the fitted
-    arm and the reading's low-pass ``lowpass_ms``; also with an unfiltered reading."""
+    arm and the reading's low-pass ``lowpass_ms``; also with an unfiltered reading. With
+    ``bottom_n_mm`` the bottom is held there ("filtered, bottom held") and the drag fitted
+    alone."""
     from dentibot.sim.bench_physics import axial_chase
 
     runs = []
@@ -239,7 +242,57 @@ def fit_axial(traj: pd.DataFrame, arm: dict, lowpass_ms: float) -> dict:
         out[name] = {"drag_n_s_per_mm": fit.x[0], "still_factor": fit.x[1],
                      "coulomb_n": fit.x[2], "bottom_n_mm": fit.x[3], "lowpass_ms": lp,
                      "rms": float(np.sqrt(np.mean(res(fit.x, lp) ** 2)))}
+    if bottom_n_mm is not None:
+        def held(p):
+            return res([*p, bottom_n_mm], lowpass_ms)
+        fit = least_squares(held, [0.1, 1.5, 0.3], bounds=([0.0, 1.0, 0.0], [2.0, 10.0, 3.0]),
+                            diff_step=[0.05] * 3)
+        out["filtered, bottom held"] = {
+            "drag_n_s_per_mm": fit.x[0], "still_factor": fit.x[1], "coulomb_n": fit.x[2],
+            "bottom_n_mm": bottom_n_mm, "lowpass_ms": lowpass_ms,
+            "rms": float(np.sqrt(np.mean(held(fit.x) ** 2)))}
     return out
+
+
+def chatter_rms(config: str, bottom_n_mm: float, seed: int = 1) -> float:
+    """``Fz_chatter_rms_N`` of ``config``'s run of experiment 1 on the bench-fitted world
+    with its bottom at ``bottom_n_mm`` (the experiment's own figure, the same definition as
+    the recordings')."""
+    from dataclasses import replace
+
+    from dentibot.app.bench_run import bench_record
+    from dentibot.experiments.alignment import BENCH_SETUP, bench_figures
+    from dentibot.sim.bench_physics import BENCH
+
+    k, b6, rotate = BENCH_SETUP[config]
+    r = bench_record(config, k, b6, rotate, seed=seed,
+                     physics=replace(BENCH, bottom_n_mm=bottom_n_mm))
+    fig = bench_figures(r.rec, r.starts, r.ends, r.stewart, r.led_behind_tip_mm, k / 80.0,
+                        r.dt)
+    return fig["Fz_chatter_rms_N"]
+
+
+#: The bottom stiffnesses (N/mm) :func:`bottom_from_chatter` runs the world at.
+CHATTER_GRID_N_MM = tuple(float(k) for k in range(7, 15))
+
+
+def bottom_from_chatter(trials: pd.DataFrame, grid=CHATTER_GRID_N_MM) -> dict:
+    """The seated file's chatter (file bottomed out at 1 N, A and B) grows with the bottom's
+    stiffness, which sets the seated loop's gain: least squares, in logs, of the simulated
+    ``Fz_chatter_rms_N`` of A and B (seed 1) on the recorded medians, over ``grid`` (N/mm),
+    refined by a parabola through the best point and its neighbours."""
+    real = {c: float(trials[trials.group == f"{c}_K500_fz1.0"].Fz_chatter_rms_N.median())
+            for c in ("A", "B")}
+    grid = np.asarray(grid, dtype=float)
+    sims = {c: [chatter_rms(c, float(k)) for k in grid] for c in real}
+    cost = np.array([sum(math.log(sims[c][i] / real[c]) ** 2 for c in real)
+                     for i in range(len(grid))])
+    i = int(np.clip(np.argmin(cost), 1, len(grid) - 2))
+    a, b, c = cost[i - 1:i + 2]
+    h = float(grid[1] - grid[0])
+    shift = 0.5 * h * (a - c) / (a - 2 * b + c) if a - 2 * b + c > 0 else 0.0
+    return {"bottom_n_mm": float(grid[i] + shift), "real": real,
+            "grid": [float(k) for k in grid], "sim": sims, "cost": cost.tolist()}
 
 
 def main(argv=None) -> int:
@@ -247,6 +300,10 @@ def main(argv=None) -> int:
     ap.add_argument("bench", help="the folder of the bench recordings' figures "
                     "(exp1_trials.csv, exp1_traj_20hz.csv)")
     ap.add_argument("--skip-axial", action="store_true", help="skip the slow axial fit")
+    ap.add_argument("--chatter", action="store_true",
+                    help="also weigh the bottom by the seated file's chatter (runs experiment 1 "
+                         "on the fitted world 16 times, about a minute), and re-fit the drag "
+                         "with that bottom held (another two minutes)")
     a = ap.parse_args(argv)
     trials, traj = load(Path(a.bench))
     arm = fit_arm(traj)
@@ -301,6 +358,18 @@ def main(argv=None) -> int:
                   f"(rms residual {v['rms']:.3f})")
         g = loop_gain(f_hz, arm_t["gain"], arm_t["tau_ms"], lp, ax["filtered"]["bottom_n_mm"])
         print(f"  the seated loop's gain at {f_hz:.2f} Hz: {g:.2f} (1: it chatters undamped)")
+        if a.chatter:
+            ch = bottom_from_chatter(trials)
+            print(f"the bottom from the seated file's chatter: {ch['bottom_n_mm']:.2f} N/mm "
+                  f"(recorded Fz_chatter_rms A {ch['real']['A']:.3f}, B {ch['real']['B']:.3f}"
+                  " N; simulated A/B, N, with the bottom at " + ", ".join(
+                      f"{k:g} N/mm: {sa:.3f}/{sb:.3f}" for k, sa, sb in
+                      zip(ch["grid"], ch["sim"]["A"], ch["sim"]["B"], strict=True)) + ")")
+            v = fit_axial(traj, arm_t, lp, bottom_n_mm=round(ch["bottom_n_mm"], 1))[
+                "filtered, bottom held"]
+            print(f"canal axial, that bottom held: drag {v['drag_n_s_per_mm']:.3f} N per "
+                  f"mm/s off the seat ({v['still_factor']:.2f} times that for a still file), "
+                  f"Coulomb {v['coulomb_n']:.3f} N (rms residual {v['rms']:.3f})")
     return 0
 
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dentibot.control.admittance import AdmittanceController, AdmittanceParams
-from dentibot.sim.bench_physics import BENCH, LOGGED_MNM_PER_A, fz_des_law
+from dentibot.sim.bench_physics import BENCH, LOGGED_MNM_PER_A, BenchPhysics, fz_des_law
 from dentibot.sim.canal import CanalParams
 from dentibot.sim.world import World
 
@@ -33,13 +33,15 @@ class BenchRecord:
 
 def bench_record(config: str, k: float, b6: float, rotate: bool, *, seed: int = 1,
                  settle_s: float = 4.0, tail_s: float = 6.0,
-                 hold_tilt: bool = False) -> BenchRecord:
+                 hold_tilt: bool = False, physics: BenchPhysics = BENCH) -> BenchRecord:
     """Run ``config`` (admittance gain ``k``, ``b6`` about the file axis, the file turning
-    when ``rotate``) on :data:`~dentibot.sim.bench_physics.BENCH`'s world, seated at the
-    working length for ``settle_s`` before the first square and ``tail_s`` after the last;
-    ``hold_tilt``: the handpiece's tilt held (b4 = b5 infinite) instead of the bench's 80
-    (for comparison: the LED-based and tip-based distances are then the same)."""
-    bp = BENCH
+    when ``rotate``) on ``physics``' world (by default
+    :data:`~dentibot.sim.bench_physics.BENCH`'s: another set of values to weigh one, as the
+    fitting tool does), seated at the working length for ``settle_s`` before the first
+    square and ``tail_s`` after the last; ``hold_tilt``: the handpiece's tilt held (b4 = b5
+    infinite) instead of the bench's 80 (for comparison: the LED-based and tip-based
+    distances are then the same)."""
+    bp = physics
     preshaped = CanalParams(initial_apical_mm=CanalParams.target_apical_mm,
                             initial_taper=CanalParams.target_taper)
     seat = preshaped.working_length_mm + preshaped.apex_margin_mm
