@@ -234,23 +234,24 @@ def fit_axial(traj: pd.DataFrame, arm: dict, lowpass_ms: float,
             out.append(0.5 * (sim["fz_h_n"] - fz))
         return np.concatenate(out)
 
-    out = {}
-    for name, lp in (("filtered", lowpass_ms), ("unfiltered", 0.0)):
-        fit = least_squares(res, [0.1, 1.5, 0.3, 3.0], args=(lp,),
-                            bounds=([0.0, 1.0, 0.0, 0.3], [2.0, 10.0, 3.0, 30.0]),
-                            diff_step=[0.05] * 4)
-        out[name] = {"drag_n_s_per_mm": fit.x[0], "still_factor": fit.x[1],
-                     "coulomb_n": fit.x[2], "bottom_n_mm": fit.x[3], "lowpass_ms": lp,
-                     "rms": float(np.sqrt(np.mean(res(fit.x, lp) ** 2)))}
+    start, lo, hi = [0.1, 1.5, 0.3, 3.0], [0.0, 1.0, 0.0, 0.3], [2.0, 10.0, 3.0, 30.0]
+
+    def fit(lp, held=None):
+        """Drag, still factor, Coulomb and bottom (or the first three, the bottom held)."""
+        n = 4 if held is None else 3
+
+        def whole(x):
+            return [*x, held] if held is not None else list(x)
+        x = least_squares(lambda x: res(whole(x), lp), start[:n], bounds=(lo[:n], hi[:n]),
+                          diff_step=[0.05] * n).x
+        p = whole(x)
+        return {"drag_n_s_per_mm": p[0], "still_factor": p[1], "coulomb_n": p[2],
+                "bottom_n_mm": p[3], "lowpass_ms": lp,
+                "rms": float(np.sqrt(np.mean(res(p, lp) ** 2)))}
+
+    out = {"filtered": fit(lowpass_ms), "unfiltered": fit(0.0)}
     if bottom_n_mm is not None:
-        def held(p):
-            return res([*p, bottom_n_mm], lowpass_ms)
-        fit = least_squares(held, [0.1, 1.5, 0.3], bounds=([0.0, 1.0, 0.0], [2.0, 10.0, 3.0]),
-                            diff_step=[0.05] * 3)
-        out["filtered, bottom held"] = {
-            "drag_n_s_per_mm": fit.x[0], "still_factor": fit.x[1], "coulomb_n": fit.x[2],
-            "bottom_n_mm": bottom_n_mm, "lowpass_ms": lowpass_ms,
-            "rms": float(np.sqrt(np.mean(held(fit.x) ** 2)))}
+        out["filtered, bottom held"] = fit(lowpass_ms, bottom_n_mm)
     return out
 
 
@@ -260,15 +261,10 @@ def chatter_rms(config: str, bottom_n_mm: float, seed: int = 1) -> float:
     the recordings')."""
     from dataclasses import replace
 
-    from dentibot.app.bench_run import bench_record
-    from dentibot.experiments.alignment import BENCH_SETUP, bench_figures
+    from dentibot.experiments.alignment import BenchSpec, run_bench
     from dentibot.sim.bench_physics import BENCH
 
-    k, b6, rotate = BENCH_SETUP[config]
-    r = bench_record(config, k, b6, rotate, seed=seed,
-                     physics=replace(BENCH, bottom_n_mm=bottom_n_mm))
-    fig = bench_figures(r.rec, r.starts, r.ends, r.stewart, r.led_behind_tip_mm, k / 80.0,
-                        r.dt)
+    fig = run_bench(BenchSpec(config, seed), physics=replace(BENCH, bottom_n_mm=bottom_n_mm))
     return fig["Fz_chatter_rms_N"]
 
 

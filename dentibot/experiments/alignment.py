@@ -555,18 +555,21 @@ class BenchSpec:
             raise ValueError(f"config {self.config!r}: one of {', '.join(BENCH_CONFIGS)}")
 
 
-def run_bench(spec: BenchSpec) -> dict:
+def run_bench(spec: BenchSpec, physics=None) -> dict:
     """Run one configuration on the bench-fitted world in lock-step (the bench's own loop,
     :func:`dentibot.app.bench_run.bench_record`) and return its figures
-    (:func:`bench_figures`)."""
+    (:func:`bench_figures`); ``physics``: another
+    :class:`~dentibot.sim.bench_physics.BenchPhysics` than the fitted one (a fit weighing a
+    value)."""
     from dentibot.app.bench_run import bench_record
 
     k, b6, rotate = BENCH_SETUP[spec.config]
     # b4 = b5 = 80 about the tip, as the bench ran: the canal's lateral loads act along the
     # file (a couple about the tip), which bounds the tilt (0.6-9 deg from the vertical over
     # a run; the bench: 4-8 deg).
+    more = {} if physics is None else {"physics": physics}
     r = bench_record(spec.config, k, b6, rotate, seed=spec.seed, settle_s=spec.settle_s,
-                     tail_s=spec.tail_s)
+                     tail_s=spec.tail_s, **more)
     return bench_figures(r.rec, r.starts, r.ends, r.stewart, r.led_behind_tip_mm,
                          k / 80.0, r.dt)
 

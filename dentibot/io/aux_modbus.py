@@ -24,9 +24,10 @@ of HR 6-7: a new counter feeds the watchdog, the time re-arms it) once a quarter
 watchdog time has passed since the last feed (by the clock, not by counting polls: polls
 slowed by long round trips must not stretch it), so the device holds the platform, lights
 FAULT and opens its host-lost output (in the clinic's safety chain: the handpiece drive's STO)
-when DentiBot dies or the link breaks for longer than that. Modbus TCP has no authentication and any client may write HR 6-7:
-a second client that switched the watchdog off (``watchdog_ms`` = 0), re-timed it, or fed it
-(hiding this host's death) would go unnoticed by a driver that only writes. So every poll
+when DentiBot dies or the link breaks for longer than that. Modbus TCP has no authentication
+and any client may write HR 6-7: a second client that switched the watchdog off
+(``watchdog_ms`` = 0), re-timed it, or fed it (hiding this host's death) would go unnoticed by
+a driver that only writes. So every poll
 period the driver also reads HR 6-7 back (FC3) before any write of its own, and a value it did
 not write latches :class:`WatchdogOverwritten`: ``read()`` raises it until
 :meth:`AuxModbusDriver.clear_watchdog_fault` (the operator's reset), while the next feed

@@ -28,10 +28,10 @@ loop stalls (a garbage collection, a compilation, a starved CPU), the scan wakes
 the time beyond two scans is not counted, because a PLC on its own CPU would have gone on
 reading the host's frames meanwhile; the host's feeds, held up by the same stall, would
 otherwise trip a watchdog the real device would never trip. A host that stays silent while
-the scan runs on time trips it within the watchdog time as ever. Once armed (``watchdog_ms`` > 0), no new
-``host_watchdog`` value for that long sets ``host_lost``, switches the DRILLING lamp off and
-the FAULT lamp on, and holds the platform setpoint where it is; the next new value clears
-``host_lost`` (the lamps stay as they are until the host writes them). ``host_lost`` is also
+the scan runs on time trips it within the watchdog time as ever. Once armed
+(``watchdog_ms`` > 0), no new ``host_watchdog`` value for that long sets ``host_lost``,
+switches the DRILLING lamp off and the FAULT lamp on, and holds the platform setpoint where it
+is; the next new value clears ``host_lost`` (the lamps stay as they are until the host writes them). ``host_lost`` is also
 a relay output: the callables in :attr:`AuxModbusServer.host_lost_outputs` are called with
 True when it is set and False when it clears. In ``dentibot sim serve`` it opens the
 handpiece drive's safe-torque-off input, in series with the emergency stop (the clinic's
