@@ -100,7 +100,9 @@ def runtime_config(p: Protocol) -> RuntimeConfig:
                               stale_periods=lim.stale_periods.model_dump()),
         plan=TreatmentPlan(working_length_mm=p.phantom.working_length_mm,
                            orifice_gap_mm=p.phantom.orifice_gap_mm,
-                           lateral_free_ref_mm=p.control.lateral_free_ref_mm),
+                           lateral_free_ref_mm=p.control.lateral_free_ref_mm,
+                           axial_lag_s=(None if p.control.axial_lag_ms is None
+                                        else p.control.axial_lag_ms / 1e3)),
         file=FileBeam(size=p.file.size, taper=p.file.taper, length_mm=float(p.file.length_mm)))
 
 

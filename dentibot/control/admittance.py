@@ -38,10 +38,26 @@ INF = math.inf
 #: file. Through a real Meca500's delay (16 ms in its queue, a 6.3 ms filter: the bench's
 #: recordings) and a rigidly held tooth, the unscaled lateral loop rang at 12 Hz from about
 #: 11 mm deep (12 mm free) and the main job faulted; scaled from 16 or 18 mm free it reaches
-#: the working length. Not the default: it stiffens the file's lateral compliance to a moving
-#: patient (thesis experiment 1 at full depth: peak force 5.5 N against 3.4-3.6 on the bench),
-#: and the bench, whose phantom sat in a compliant holder, did not ring (docs/sim-to-real.md).
+#: the working length. The protocols' default (the product runs on a real arm); it stiffens
+#: the file's lateral compliance to a moving patient (thesis experiment 1 at full depth: peak
+#: force 5.5 N against 3.4-3.6 on the bench, whose phantom sat in a compliant holder and did
+#: not ring), so the thesis's reproductions run without it (docs/sim-to-real.md).
 LATERAL_FREE_REF_MM = 18.0
+#: Time constant (s) of the self-alignment and drilling admittance along the file, m_z/b_z,
+#: for an arm that answers late in a canal that drags the file (:func:`with_axial_lag`).
+#: Along the file a lagging admittance is a first-order low-pass of the force it reads
+#: followed by k/b. Table 4.3's 1 ms leaves the axial loop a pure gain through the arm's
+#: delay (the bench's Meca500: 16 ms in its queue, a 6.3 ms filter, 0.80 of the command):
+#: the walls' drag on a turning file at full depth (0.21 N per mm/s) answered with k/b =
+#: 6.25 mm/s per N is a velocity loop of gain 1.05, and the main job on the bench-fitted
+#: world ran away at about 19 Hz from 11 mm deep. With 60 ms the loop's gain where the delay
+#: and the lag turn it by half a turn (about 12 Hz) is a fifth of its static gain: a turning
+#: file is far inside, a still file (dragged 6 times harder) up to about 13 mm deep. Measured
+#: on the fitted world: the main job reaches the working length with 30, 60 and 113 ms
+#: (seeds 1-4 with 60); with 113 ms (the bench's own low-pass on its force) seeds 2 and 3
+#: faulted after a patient-moved episode at 90 s, and with 30 ms a stopped file ran away in
+#: one more trial procedure than with 60 (docs/sim-to-real.md).
+AXIAL_LAG_S = 0.060
 _ZERO6 = np.zeros(6)
 DEFAULT_TS = 0.002  # s, 500 Hz (thesis: ts = 0.002)
 AXES = ("x", "y", "z", "rx", "ry", "rz")
@@ -126,6 +142,19 @@ EXPERIMENT_1 = {
 PRESETS = {p.name: p for p in (DRAGGING, SELF_ALIGNMENT)} | {
     c.params.name: c.params for c in EXPERIMENT_1.values()
 }
+
+
+def with_axial_lag(params: AdmittanceParams, lag_s: float) -> AdmittanceParams:
+    """``params`` with the z axis's mass set to ``b_z lag_s`` (time constant ``lag_s``, eq
+    4.33; the gain k/b_z unchanged). Along the file a lag of the admittance acts as a
+    first-order low-pass of the force it reads (:data:`AXIAL_LAG_S`)."""
+    if not (math.isfinite(lag_s) and lag_s > 0.0):
+        raise ConfigError("admittance.axial_lag_s", lag_s, "a finite time constant > 0 s")
+    if not params.enabled(2):
+        return params
+    m = list(params.m)
+    m[2] = params.b[2] * lag_s
+    return AdmittanceParams(params.k, params.b, tuple(m), f"{params.name}_lag{lag_s * 1e3:g}ms")
 
 
 class AdmittanceFilter:

@@ -354,15 +354,16 @@ def analyse(spec: AlignmentSpec, t, tip, root, axis_in, status="ok", reason="",
 
 # ---------------------------------------------------------------------------- the run
 def alignment_protocol(spec: AlignmentSpec) -> Protocol:
-    """The protocol of one run: protocols/experiment1-config-<X>.yaml with the run's seed,
-    phantom and duration (the square itself is set on the world, see :func:`run_alignment`);
-    with hybrid ``tracking``, the patient tracker on and hybrid control."""
+    """The protocol of one run: protocols/experiment1-config-<X>.yaml (the thesis's world)
+    with the run's seed, phantom and duration (the square itself is set on the world, see
+    :func:`run_alignment`); with hybrid ``tracking``, the patient tracker on and hybrid
+    control."""
     pv = spec.patient or PatientVariation()
     patient = {"motion": "square"}
     if spec.tracking == "hybrid":
         patient |= {"tracker": True, "tracking": "hybrid"}
     return Protocol.model_validate({
-        "name": f"experiment1-{spec.config}", "seed": spec.seed,
+        "name": f"experiment1-{spec.config}", "seed": spec.seed, "world": "thesis",
         "phantom": {"working_length_mm": pv.working_length_mm, "tilt_deg": pv.tilt_deg,
                     "orifice_gap_mm": 2.0, "preshaped": True},
         "patient": patient,

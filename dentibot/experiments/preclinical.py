@@ -190,7 +190,8 @@ class PhantomRun:
 
 
 def preclinical_protocol(spec: PreclinicalSpec) -> Protocol:
-    """protocols/preclinical-phantom-D.yaml with this phantom's canal, tau_d, strategy, seed."""
+    """protocols/preclinical-phantom-D.yaml with this phantom's canal, tau_d, strategy, seed
+    (on the thesis's world, whose Table 6.5 it reproduces)."""
     p = spec.phantom
     phantom: dict = {"working_length_mm": p.working_length_mm, "orifice_gap_mm": 2.0,
                      "tilt_deg": p.tilt_deg, "material": spec.material}
@@ -198,7 +199,7 @@ def preclinical_protocol(spec: PreclinicalSpec) -> Protocol:
         phantom["curve"] = {"start_mm": p.curve_start_mm, "radius_mm": p.curve_radius_mm,
                             "angle_deg": p.curve_angle_deg}
     return Protocol.model_validate({
-        "name": f"preclinical-{p.name}", "seed": p.seed,
+        "name": f"preclinical-{p.name}", "seed": p.seed, "world": "thesis",
         "file": {"size": 25, "taper": 0.06, "length_mm": 25},
         "phantom": phantom,
         "recording": {"enabled": False},

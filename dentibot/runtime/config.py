@@ -152,6 +152,10 @@ class TreatmentPlan:
     # the stiffness the handpiece feels sideways grows so. For an arm that answers late, with
     # a rigidly held tooth: control.admittance.LATERAL_FREE_REF_MM.
     lateral_free_ref_mm: float = 0.0
+    # The self-alignment and drilling admittance's time constant along the file (s, m_z/b_z;
+    # None: Table 4.3's 1 ms). For an arm that answers late in a canal that drags the file:
+    # control.admittance.AXIAL_LAG_S.
+    axial_lag_s: float | None = None
 
     def __post_init__(self) -> None:
         _check("treatment.working_length_mm", self.working_length_mm, 1.0, 30.0, "mm")
@@ -162,6 +166,8 @@ class TreatmentPlan:
         _check("treatment.retract_to_mm", self.retract_to_mm, -10.0, 0.0, "mm")
         _check("treatment.orifice_gap_mm", self.orifice_gap_mm, 0.0, 20.0, "mm")
         _check("treatment.lateral_free_ref_mm", self.lateral_free_ref_mm, 0.0, 60.0, "mm")
+        if self.axial_lag_s is not None:
+            _check("treatment.axial_lag_s", self.axial_lag_s, 0.0005, 0.2, "s")
 
 
 @dataclass(frozen=True)

@@ -78,11 +78,15 @@ class BenchPhysics:
     # worse (residual 0.338); the world before it (drag on the seated file too, 0.11 N per
     # mm/s, 0.34 N of Coulomb drag, 2.7 N/mm) had 0.448, its steep Coulomb part standing in
     # for the lag and ringing at 19 Hz through the arm's delay.
-    drag_n_s_per_mm: float = 0.19
+    drag_n_s_per_mm: float = 0.21
     drag_coulomb_n: float = 0.0
     drag_v0_mm_s: float = 0.5
     bottom_n_mm: float = 7.4
     drag_static_factor: float = 6.0
+    # The drag acts along the file's length in the canal (assumption: wall contact), so the
+    # values above hold at the depth they were fitted at, the bench's file at its seat (its
+    # canal's 16 mm working length and 0.5 mm to the bottom), in proportion elsewhere.
+    drag_depth_mm: float = 16.5
     # assumption: lateral sliding damped like the axial (same N per mm/s).
     drag_lat_n_s_per_mm: float = 0.10
     # --- canal, lateral: the phantom's holder on the Stewart platform moves sideways under
@@ -154,6 +158,7 @@ class BenchPhysics:
         return replace(base or CanalParams(), drag_n_s_per_mm=self.drag_n_s_per_mm,
                        drag_coulomb_n=self.drag_coulomb_n, drag_v0_mm_s=self.drag_v0_mm_s,
                        drag_static_factor=self.drag_static_factor,
+                       drag_depth_mm=self.drag_depth_mm,
                        drag_lat_n_s_per_mm=self.drag_lat_n_s_per_mm)
 
     def canal(self, base: CanalParams | None = None, efficiency: float = 0.7) -> CanalParams:
@@ -243,6 +248,7 @@ def axial_chase(t, platform_z_mm, config: str, arm_gain: float = BENCH.arm_gain,
                 coulomb_n: float = BENCH.drag_coulomb_n, v0_mm_s: float = BENCH.drag_v0_mm_s,
                 bottom_n_mm: float = BENCH.bottom_n_mm,
                 still_factor: float = BENCH.drag_static_factor,
+                drag_depth_mm: float = BENCH.drag_depth_mm,
                 lowpass_ms: float = 1000 * BENCH.ft_lowpass_s,
                 press_mnm_per_n: float = BENCH.torque_press_mnm_per_n,
                 free_mnm: float = BENCH.torque_free_mnm, ts: float = 0.002) -> dict:
@@ -250,7 +256,9 @@ def axial_chase(t, platform_z_mm, config: str, arm_gain: float = BENCH.arm_gain,
     ``platform_z_mm`` (at times ``t``), held by the admittance law (k/b = 6.25 mm/s per N,
     or 3.125 for C_K250) on the force read through the first-order low-pass ``lowpass_ms``,
     through the arm's dead time, lag and gain; the canal bottom a spring, the walls dragging
-    the file off its seat (``still_factor`` times harder in A, whose file does not turn).
+    the file off its seat (``still_factor`` times harder in A, whose file does not turn; in
+    proportion to its length left in the canal, seated at ``drag_depth_mm``, when that is
+    > 0).
     Returns at the times ``t``: ``gap_mm`` (tip out of its seat, + out) and ``fz_h_n`` (the
     contact force along the file in {H} as read, + tension)."""
     t = np.asarray(t, float)
@@ -279,7 +287,9 @@ def axial_chase(t, platform_z_mm, config: str, arm_gain: float = BENCH.arm_gain,
         slip += (((gap - prev_gap) / ts if gap >= 0.0 else 0.0) - slip) * af
         prev_gap = gap
         n = bottom_n_mm * -gap if gap < 0.0 else 0.0
-        f_up = n - (drag_n_s_per_mm * slip + coulomb_n * math.tanh(slip / v0_mm_s)) * still
+        inside = 1.0 - max(gap, 0.0) / drag_depth_mm if drag_depth_mm > 0.0 else 1.0
+        f_up = n - (drag_n_s_per_mm * slip + coulomb_n * math.tanh(slip / v0_mm_s)) * still \
+            * max(inside, 0.0)
         read += (f_up - read) * (1.0 - keep)
         tau = free_mnm + press_mnm_per_n * max(read, 0.0)
         fz = fz_des_law(config, tau, abs(read))

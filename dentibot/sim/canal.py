@@ -133,11 +133,15 @@ class CanalParams:
     # ``drag_static_factor`` times harder, both parts (its flutes do not work it loose from
     # the walls as a turning file's do). Laterally the walls damp the file's
     # sliding across the canal with ``drag_lat_n_s_per_mm`` (N per mm/s) while it touches
-    # them. The bench preset (:mod:`dentibot.sim.bench_physics`) holds the fitted values.
+    # them. The axial drag acts along the file's length in the canal: with
+    # ``drag_depth_mm`` set (> 0) it is the values above for a file that deep, in proportion
+    # to the depth (a file entering the orifice meets next to none); 0: the same at any
+    # depth. The bench preset (:mod:`dentibot.sim.bench_physics`) holds the fitted values.
     drag_n_s_per_mm: float = 0.0
     drag_coulomb_n: float = 0.0
     drag_v0_mm_s: float = 0.5
     drag_static_factor: float = 1.0
+    drag_depth_mm: float = 0.0
     drag_lat_n_s_per_mm: float = 0.0
     drag_filter_s: float = 0.004
     # Torque (mNm) the canal bottom resists rotation with per N the tip is pressed onto it
@@ -154,7 +158,7 @@ class CanalParams:
         if not self.cutting_energy_mj_mm3 > 0.0:
             raise ConfigError("canal.cutting_energy_mj_mm3", self.cutting_energy_mj_mm3, "> 0")
         for name in ("rub_mnm_per_mm", "screw_n_per_mnm", "withdraw_deadband_mm",
-                     "support_mm_per_n"):
+                     "support_mm_per_n", "drag_depth_mm"):
             if not getattr(self, name) >= 0.0:
                 raise ConfigError(f"canal.{name}", getattr(self, name), ">= 0")
         if self.support_y_mm_per_n is not None and not self.support_y_mm_per_n >= 0.0:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dentibot.control.admittance import PRESETS, AdmittanceParams
+from dentibot.control.admittance import PRESETS, AdmittanceParams, with_axial_lag
 
 
 @dataclass(frozen=True)
@@ -30,11 +30,15 @@ class Mode:
 
 def admittance_params(mode: Mode, plan) -> AdmittanceParams:
     """The admittance parameters of ``mode``: its preset (Table 4.3), or for self-alignment the
-    plan's own (Table 6.4 configurations) when it has them."""
+    plan's own (Table 6.4 configurations) when it has them; self-alignment and drilling with
+    the plan's lag along the file (``axial_lag_s``, None: Table 4.3's)."""
     if mode.admittance == "self_alignment" and mode.feed == "align" \
             and plan.align_params is not None:
         return plan.align_params
-    return PRESETS[mode.admittance]
+    params = PRESETS[mode.admittance]
+    if mode.admittance == "self_alignment" and plan.axial_lag_s is not None:
+        return with_axial_lag(params, plan.axial_lag_s)
+    return params
 
 
 def file_command(mode: Mode, drilling_rpm: float, align_rpm: float) -> tuple:

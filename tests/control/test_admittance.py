@@ -14,6 +14,7 @@ from dentibot.control.admittance import (
     AdmittanceController,
     AdmittanceFilter,
     AdmittanceParams,
+    with_axial_lag,
 )
 from dentibot.control.kinematics import Meca500, matrix_from_pose
 from dentibot.errors import ConfigError
@@ -79,6 +80,30 @@ def test_step_response_matches_first_order_analytic(m, b, k, f):
     # half period the sampled step lags).
     idx = np.argmax(np.abs(v) >= 0.632 * abs(final))
     assert abs(t[idx] - (tau + ts / 2)) <= ts
+
+
+def test_the_lag_along_the_file_is_a_first_order_low_pass_of_the_axial_force():
+    """with_axial_lag(SELF_ALIGNMENT, 0.113): the z axis follows a force step as the first
+    order of eq 4.32 with time constant 0.113 s and the same 6.25 mm/s per N; x, y keep
+    Table 4.3's 1 ms."""
+    ts, tau, f = 0.002, 0.113, 1.0
+    params = with_axial_lag(SELF_ALIGNMENT, tau)
+    assert params.time_constant(2) == pytest.approx(tau) and params.steady_gain(2) == 6.25
+    assert params.time_constant(0) == pytest.approx(0.001) and params.m[3:] == \
+        SELF_ALIGNMENT.m[3:]
+    filt = AdmittanceFilter(params, ts)
+    n = int(8 * tau / ts)
+    v = np.array([filt.step([f, 0.0, f, 0.0, 0.0, 0.0]) for _ in range(n)])
+    t = ts * np.arange(1, n + 1)
+    analytic = first_order_response_to_sampled_step(500.0, 80.0, tau, f, ts, t)
+    assert np.max(np.abs(v[:, 2] - analytic)) < 1e-3 * 6.25
+    assert v[0, 0] == pytest.approx(3.125) and v[1, 0] == pytest.approx(6.25)
+
+
+@pytest.mark.parametrize("lag_s", [0.0, -0.1, math.nan, math.inf])
+def test_a_lag_along_the_file_must_be_a_time_constant(lag_s):
+    with pytest.raises(ConfigError, match="axial_lag_s"):
+        with_axial_lag(SELF_ALIGNMENT, lag_s)
 
 
 def test_tustin_recursion_exact_values():

@@ -1,5 +1,7 @@
-"""A protocol's ``simulator`` section: the ideal arm and a drag-free canal unless it asks for
-the physics fitted to the thesis bench, which then reach the world the run steps."""
+"""A protocol's ``world`` and ``simulator`` section: the thesis's world (the ideal arm, a
+drag-free canal, Table 4.3's admittance) unless it names the world fitted to the thesis bench
+or asks for its physics, which then reach the world the run steps; the controller's defaults
+go with the world."""
 
 from __future__ import annotations
 
@@ -8,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from dentibot.app.runner import world_config
+from dentibot.app.runner import runtime_config, world_config
 from dentibot.protocol.loader import ProtocolFileError, parse_protocol
 from dentibot.sim.arm import ArmParams
 from dentibot.sim.bench_physics import BENCH
@@ -23,11 +25,41 @@ steps:
 """
 
 
-def test_by_default_the_ideal_arm_and_no_drag():
-    cfg = world_config(parse_protocol(BASE))
+def test_the_bench_world_is_the_fitted_arm_and_drag_and_the_controller_for_a_late_arm():
+    p = parse_protocol(BASE + "world: bench\n")
+    cfg = world_config(p)
+    assert (cfg.arm.vel_dead_time_s, cfg.arm.vel_gain, cfg.arm.servo_tau_s) == \
+        (0.016, 0.804, 0.0063)
+    assert (cfg.canal.drag_n_s_per_mm, cfg.canal.drag_depth_mm) == (0.21, 16.5)
+    plan = runtime_config(p).plan
+    assert (plan.lateral_free_ref_mm, plan.axial_lag_s) == (18.0, 0.060)
+
+
+@pytest.mark.parametrize("extra", ["", "world: thesis\n"])
+def test_by_default_the_thesis_world_the_ideal_arm_no_drag_and_table_4_3_alone(extra):
+    p = parse_protocol(BASE + extra)
+    assert p.world == "thesis"
+    cfg = world_config(p)
     assert cfg.arm == ArmParams()
     assert cfg.arm.vel_dead_time_s == 0.0 and cfg.arm.vel_gain == 1.0
     assert cfg.canal.drag_n_s_per_mm == 0.0 and cfg.canal.drag_coulomb_n == 0.0
+    plan = runtime_config(p).plan
+    assert (plan.lateral_free_ref_mm, plan.axial_lag_s) == (0.0, None)
+
+
+def test_keys_a_protocol_gives_win_over_its_world():
+    p = parse_protocol(BASE + "world: thesis\nsimulator: {arm: bench}\n"
+                              "control: {axial_lag_ms: 60}\n")
+    cfg = world_config(p)
+    assert cfg.arm.vel_gain == 0.804 and cfg.canal.drag_n_s_per_mm == 0.0
+    plan = runtime_config(p).plan
+    assert (plan.lateral_free_ref_mm, plan.axial_lag_s) == (0.0, 0.060)
+
+
+def test_an_unknown_world_is_refused_naming_the_field():
+    with pytest.raises(ProtocolFileError) as e:
+        parse_protocol(BASE + "world: mars\n")
+    assert "world" in str(e.value) and "mars" in str(e.value)
 
 
 def test_the_bench_arm_and_drag_reach_the_world_and_the_phantom_stays():
@@ -37,7 +69,7 @@ def test_the_bench_arm_and_drag_reach_the_world_and_the_phantom_stays():
         (0.016, 0.804, 0.0063)
     c = cfg.canal
     assert (c.drag_n_s_per_mm, c.drag_coulomb_n, c.drag_static_factor,
-            c.drag_lat_n_s_per_mm) == (0.19, 0.0, 6.0, 0.10)
+            c.drag_lat_n_s_per_mm, c.drag_depth_mm) == (0.21, 0.0, 6.0, 0.10, 16.5)
     # the protocol's phantom, not the bench's: its working length, tilt, bottom and support
     assert (c.working_length_mm, c.tilt_deg) == (14.5, 3.0)
     assert c.bottom_n_mm != BENCH.bottom_n_mm and c.support_mm_per_n == 0.0
