@@ -228,16 +228,18 @@ def fit_axial(traj: pd.DataFrame, arm: dict, lowpass_ms: float,
         out = []
         for cfg, t, pz, rel, fz in runs:
             sim = axial_chase(t, pz, cfg, arm_gain=arm["gain"], dead_ms=arm["delay_ms"],
-                              tau_ms=arm["tau_ms"], drag_n_s_per_mm=p[0], still_factor=p[1],
-                              coulomb_n=p[2], bottom_n_mm=p[3], lowpass_ms=lp)
+                              tau_ms=arm["tau_ms"], drag_n_s_per_mm=p[0], still_factor=1.0,
+                              still_coulomb_n=p[1], coulomb_n=p[2], bottom_n_mm=p[3],
+                              lowpass_ms=lp)
             out.append(sim["gap_mm"] - rel)
             out.append(0.5 * (sim["fz_h_n"] - fz))
         return np.concatenate(out)
 
-    start, lo, hi = [0.1, 1.5, 0.3, 3.0], [0.0, 1.0, 0.0, 0.3], [2.0, 10.0, 3.0, 30.0]
+    start, lo, hi = [0.1, 0.3, 0.3, 3.0], [0.0, 0.0, 0.0, 0.3], [2.0, 5.0, 3.0, 30.0]
 
     def fit(lp, held=None):
-        """Drag, still factor, Coulomb and bottom (or the first three, the bottom held)."""
+        """Drag, a still file's friction, Coulomb and bottom (or the first three, the bottom
+        held)."""
         n = 4 if held is None else 3
 
         def whole(x):
@@ -245,7 +247,7 @@ def fit_axial(traj: pd.DataFrame, arm: dict, lowpass_ms: float,
         x = least_squares(lambda x: res(whole(x), lp), start[:n], bounds=(lo[:n], hi[:n]),
                           diff_step=[0.05] * n).x
         p = whole(x)
-        return {"drag_n_s_per_mm": p[0], "still_factor": p[1], "coulomb_n": p[2],
+        return {"drag_n_s_per_mm": p[0], "still_coulomb_n": p[1], "coulomb_n": p[2],
                 "bottom_n_mm": p[3], "lowpass_ms": lp,
                 "rms": float(np.sqrt(np.mean(res(p, lp) ** 2)))}
 
@@ -300,6 +302,8 @@ def main(argv=None) -> int:
                     help="also weigh the bottom by the seated file's chatter (runs experiment 1 "
                          "on the fitted world 16 times, about a minute), and re-fit the drag "
                          "with that bottom held (another two minutes)")
+    ap.add_argument("--bottom", type=float, metavar="N_MM",
+                    help="also re-fit the drag with the bottom held at N_MM N/mm")
     a = ap.parse_args(argv)
     trials, traj = load(Path(a.bench))
     arm = fit_arm(traj)
@@ -349,11 +353,12 @@ def main(argv=None) -> int:
         ax = fit_axial(traj, arm_t, lp)
         for name, v in ax.items():
             print(f"canal axial, {name} reading: drag {v['drag_n_s_per_mm']:.3f} N per mm/s "
-                  f"off the seat ({v['still_factor']:.2f} times that for a still file), "
+                  f"off the seat (a still file held by {v['still_coulomb_n']:.2f} N more), "
                   f"Coulomb {v['coulomb_n']:.3f} N, bottom {v['bottom_n_mm']:.2f} N/mm "
                   f"(rms residual {v['rms']:.3f})")
         g = loop_gain(f_hz, arm_t["gain"], arm_t["tau_ms"], lp, ax["filtered"]["bottom_n_mm"])
         print(f"  the seated loop's gain at {f_hz:.2f} Hz: {g:.2f} (1: it chatters undamped)")
+        held = []
         if a.chatter:
             ch = bottom_from_chatter(trials)
             print(f"the bottom from the seated file's chatter: {ch['bottom_n_mm']:.2f} N/mm "
@@ -361,11 +366,15 @@ def main(argv=None) -> int:
                   " N; simulated A/B, N, with the bottom at " + ", ".join(
                       f"{k:g} N/mm: {sa:.3f}/{sb:.3f}" for k, sa, sb in
                       zip(ch["grid"], ch["sim"]["A"], ch["sim"]["B"], strict=True)) + ")")
-            v = fit_axial(traj, arm_t, lp, bottom_n_mm=round(ch["bottom_n_mm"], 1))[
-                "filtered, bottom held"]
-            print(f"canal axial, that bottom held: drag {v['drag_n_s_per_mm']:.3f} N per "
-                  f"mm/s off the seat ({v['still_factor']:.2f} times that for a still file), "
-                  f"Coulomb {v['coulomb_n']:.3f} N (rms residual {v['rms']:.3f})")
+            held.append(round(ch["bottom_n_mm"], 1))
+        if a.bottom is not None:
+            held.append(a.bottom)
+        for bottom in held:
+            v = fit_axial(traj, arm_t, lp, bottom_n_mm=bottom)["filtered, bottom held"]
+            print(f"canal axial, the bottom held at {bottom:g} N/mm: drag "
+                  f"{v['drag_n_s_per_mm']:.3f} N per mm/s off the seat (a still file held by "
+                  f"{v['still_coulomb_n']:.2f} N more), Coulomb {v['coulomb_n']:.3f} N (rms "
+                  f"residual {v['rms']:.3f})")
     return 0
 
 

@@ -49,14 +49,15 @@ LATERAL_FREE_REF_MM = 18.0
 #: followed by k/b. Table 4.3's 1 ms leaves the axial loop a pure gain through the arm's
 #: delay (the bench's Meca500: 16 ms in its queue, a 6.3 ms filter, 0.80 of the command):
 #: the walls' drag on a turning file at full depth (0.21 N per mm/s) answered with k/b =
-#: 6.25 mm/s per N is a velocity loop of gain 1.05, and the main job on the bench-fitted
-#: world ran away at about 19 Hz from 11 mm deep. With 60 ms the loop's gain where the delay
-#: and the lag turn it by half a turn (about 12 Hz) is a fifth of its static gain: a turning
-#: file is far inside, a still file (dragged 6 times harder) up to about 13 mm deep. Measured
-#: on the fitted world: the main job reaches the working length with 30, 60 and 113 ms
-#: (seeds 1-4 with 60); with 113 ms (the bench's own low-pass on its force) seeds 2 and 3
-#: faulted after a patient-moved episode at 90 s, and with 30 ms a stopped file ran away in
-#: one more trial procedure than with 60 (docs/sim-to-real.md).
+#: 6.25 mm/s per N is a velocity loop of gain 1.05, which the cutting's feed-dependent
+#: resistance takes past 1, and the main job on the bench-fitted world ran away at about
+#: 19 Hz from 11 mm deep. A lag brings the frequency where the delay and the lag turn the
+#: loop by half a turn down, and the loop's gain there with it (with 60 ms, about 12 Hz and
+#: a fifth). Measured on the fitted world, the main job (seeds 1-4) reaches the working
+#: length every time with 60 ms, its peak force 1.23-1.35 N; with 30 ms it peaks at
+#: 1.48-1.59 N, at the patient-moved trigger (1.5 N), and one seed faulted there; with
+#: 113 ms (the bench's own low-pass on its force) three of the four did
+#: (docs/sim-to-real.md).
 AXIAL_LAG_S = 0.060
 _ZERO6 = np.zeros(6)
 DEFAULT_TS = 0.002  # s, 500 Hz (thesis: ts = 0.002)

@@ -70,22 +70,30 @@ class BenchPhysics:
     ft_lowpass_s: float = 0.113
     # --- canal, axial: drag and the bottom's stiffness, least squares of
     # :func:`axial_chase` on the three recorded trials' tip-root distance and contact force
-    # along z, with the reading's low-pass above (tool: "canal axial, filtered reading":
-    # 0.189 N per mm/s while the file slides off its seat, 5.98 times that for the still
-    # file of A, Coulomb 0.000 N (a turning file slides out almost freely), 7.41 N/mm;
-    # residual 0.315; rounded to 0.01 N per mm/s, 0.1 and 0.1 N/mm). Pressed into its seat
-    # the file does not slide along the walls. On an unfiltered reading the same model fits
-    # worse (residual 0.338); the world before it (drag on the seated file too, 0.11 N per
-    # mm/s, 0.34 N of Coulomb drag, 2.7 N/mm) had 0.448, its steep Coulomb part standing in
-    # for the lag and ringing at 19 Hz through the arm's delay.
+    # along z, with the reading's low-pass above. Pressed into its seat the file does not
+    # slide along the walls; off it, the walls drag it in proportion to the slip; a still
+    # file (A's) is held by friction more, a Coulomb drag. The drag acts along the file's
+    # length in the canal (assumption: wall contact): the values hold at the depth they were
+    # fitted at, the bench's file at its seat (its canal's 16 mm working length and 0.5 mm to
+    # the bottom), in proportion elsewhere. The free fit (tool: "canal axial, filtered
+    # reading") puts the drag at 0.199 N per mm/s, the still file's friction at 2.32 N and
+    # the bottom at 6.59 N/mm (residual 0.318), which takes one more of A's figures out of
+    # range (the file out of its seat in square 4, 0.93 mm); with the bottom held at the
+    # 7.4 N/mm of the model before (tool: "--bottom 7.4"), 0.207 N per mm/s, 1.21 N and
+    # 0.019 N of Coulomb drag (residual 0.320), kept (rounded to 0.01 N per mm/s, 0.05 N and
+    # 0.01 N). The time series hardly tell the still file's friction from a drag a constant
+    # factor harder (6.0 times, viscous: residual 0.316), the model before: it made the
+    # admittance's loop a gain of 6.3 for a still file at full depth, and a file stopped in
+    # the canal (a patient movement, hand-guiding) rang through the arm's delay. The world
+    # before that (drag on the seated file too, 0.11 N per mm/s, 0.34 N of Coulomb drag,
+    # 2.7 N/mm) had 0.448, its steep Coulomb part standing in for the lag and ringing at
+    # 19 Hz through the arm's delay.
     drag_n_s_per_mm: float = 0.21
-    drag_coulomb_n: float = 0.0
+    drag_coulomb_n: float = 0.02
     drag_v0_mm_s: float = 0.5
     bottom_n_mm: float = 7.4
-    drag_static_factor: float = 6.0
-    # The drag acts along the file's length in the canal (assumption: wall contact), so the
-    # values above hold at the depth they were fitted at, the bench's file at its seat (its
-    # canal's 16 mm working length and 0.5 mm to the bottom), in proportion elsewhere.
+    drag_static_factor: float = 1.0
+    drag_still_coulomb_n: float = 1.2
     drag_depth_mm: float = 16.5
     # assumption: lateral sliding damped like the axial (same N per mm/s).
     drag_lat_n_s_per_mm: float = 0.10
@@ -158,6 +166,7 @@ class BenchPhysics:
         return replace(base or CanalParams(), drag_n_s_per_mm=self.drag_n_s_per_mm,
                        drag_coulomb_n=self.drag_coulomb_n, drag_v0_mm_s=self.drag_v0_mm_s,
                        drag_static_factor=self.drag_static_factor,
+                       drag_still_coulomb_n=self.drag_still_coulomb_n,
                        drag_depth_mm=self.drag_depth_mm,
                        drag_lat_n_s_per_mm=self.drag_lat_n_s_per_mm)
 
@@ -249,6 +258,7 @@ def axial_chase(t, platform_z_mm, config: str, arm_gain: float = BENCH.arm_gain,
                 bottom_n_mm: float = BENCH.bottom_n_mm,
                 still_factor: float = BENCH.drag_static_factor,
                 drag_depth_mm: float = BENCH.drag_depth_mm,
+                still_coulomb_n: float = BENCH.drag_still_coulomb_n,
                 lowpass_ms: float = 1000 * BENCH.ft_lowpass_s,
                 press_mnm_per_n: float = BENCH.torque_press_mnm_per_n,
                 free_mnm: float = BENCH.torque_free_mnm, ts: float = 0.002) -> dict:
@@ -256,9 +266,9 @@ def axial_chase(t, platform_z_mm, config: str, arm_gain: float = BENCH.arm_gain,
     ``platform_z_mm`` (at times ``t``), held by the admittance law (k/b = 6.25 mm/s per N,
     or 3.125 for C_K250) on the force read through the first-order low-pass ``lowpass_ms``,
     through the arm's dead time, lag and gain; the canal bottom a spring, the walls dragging
-    the file off its seat (``still_factor`` times harder in A, whose file does not turn; in
-    proportion to its length left in the canal, seated at ``drag_depth_mm``, when that is
-    > 0).
+    the file off its seat (``still_factor`` times harder in A, whose file does not turn,
+    and held there by ``still_coulomb_n`` of friction more; in proportion to its length
+    left in the canal, seated at ``drag_depth_mm``, when that is > 0).
     Returns at the times ``t``: ``gap_mm`` (tip out of its seat, + out) and ``fz_h_n`` (the
     contact force along the file in {H} as read, + tension)."""
     t = np.asarray(t, float)
@@ -288,8 +298,9 @@ def axial_chase(t, platform_z_mm, config: str, arm_gain: float = BENCH.arm_gain,
         prev_gap = gap
         n = bottom_n_mm * -gap if gap < 0.0 else 0.0
         inside = 1.0 - max(gap, 0.0) / drag_depth_mm if drag_depth_mm > 0.0 else 1.0
-        f_up = n - (drag_n_s_per_mm * slip + coulomb_n * math.tanh(slip / v0_mm_s)) * still \
-            * max(inside, 0.0)
+        f_up = n - ((drag_n_s_per_mm * slip + coulomb_n * math.tanh(slip / v0_mm_s)) * still
+                    + (still_coulomb_n * math.tanh(slip / v0_mm_s) if config == "A" else 0.0)
+                    ) * max(inside, 0.0)
         read += (f_up - read) * (1.0 - keep)
         tau = free_mnm + press_mnm_per_n * max(read, 0.0)
         fz = fz_des_law(config, tau, abs(read))

@@ -131,7 +131,8 @@ class CanalParams:
     # recedes from the file (u < 0) that pulls the file along into the canal: the contact
     # force in {H} turns to tension. A file that does not turn is dragged
     # ``drag_static_factor`` times harder, both parts (its flutes do not work it loose from
-    # the walls as a turning file's do). Laterally the walls damp the file's
+    # the walls as a turning file's do), and held by ``drag_still_coulomb_n`` of friction
+    # more (N, the Coulomb law above). Laterally the walls damp the file's
     # sliding across the canal with ``drag_lat_n_s_per_mm`` (N per mm/s) while it touches
     # them. The axial drag acts along the file's length in the canal: with
     # ``drag_depth_mm`` set (> 0) it is the values above for a file that deep, in proportion
@@ -142,6 +143,7 @@ class CanalParams:
     drag_v0_mm_s: float = 0.5
     drag_static_factor: float = 1.0
     drag_depth_mm: float = 0.0
+    drag_still_coulomb_n: float = 0.0
     drag_lat_n_s_per_mm: float = 0.0
     drag_filter_s: float = 0.004
     # Torque (mNm) the canal bottom resists rotation with per N the tip is pressed onto it
@@ -158,7 +160,7 @@ class CanalParams:
         if not self.cutting_energy_mj_mm3 > 0.0:
             raise ConfigError("canal.cutting_energy_mj_mm3", self.cutting_energy_mj_mm3, "> 0")
         for name in ("rub_mnm_per_mm", "screw_n_per_mnm", "withdraw_deadband_mm",
-                     "support_mm_per_n", "drag_depth_mm"):
+                     "support_mm_per_n", "drag_depth_mm", "drag_still_coulomb_n"):
             if not getattr(self, name) >= 0.0:
                 raise ConfigError(f"canal.{name}", getattr(self, name), ">= 0")
         if self.support_y_mm_per_n is not None and not self.support_y_mm_per_n >= 0.0:
@@ -263,7 +265,8 @@ class Canal:
             self.kappa = np.where((self.s >= p.curve_start_mm) & (self.s <= arc_end),
                                   1.0 / p.curve_radius_mm, 0.0)
         self.curved = bool(self.kappa.any())
-        self._drag = bool(p.drag_n_s_per_mm or p.drag_coulomb_n or p.drag_lat_n_s_per_mm
+        self._drag = bool(p.drag_n_s_per_mm or p.drag_coulomb_n or p.drag_still_coulomb_n
+                          or p.drag_lat_n_s_per_mm
                           or p.bottom_torque_mnm_per_n)
         self.st = np.zeros(len(kern.STATE_FIELDS))
         self.st[kern.S["last_depth"]] = -1.0

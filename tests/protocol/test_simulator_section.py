@@ -69,7 +69,8 @@ def test_the_bench_arm_and_drag_reach_the_world_and_the_phantom_stays():
         (0.016, 0.804, 0.0063)
     c = cfg.canal
     assert (c.drag_n_s_per_mm, c.drag_coulomb_n, c.drag_static_factor,
-            c.drag_lat_n_s_per_mm, c.drag_depth_mm) == (0.21, 0.0, 6.0, 0.10, 16.5)
+            c.drag_still_coulomb_n, c.drag_lat_n_s_per_mm, c.drag_depth_mm) == \
+        (0.21, 0.02, 1.0, 1.2, 0.10, 16.5)
     # the protocol's phantom, not the bench's: its working length, tilt, bottom and support
     assert (c.working_length_mm, c.tilt_deg) == (14.5, 3.0)
     assert c.bottom_n_mm != BENCH.bottom_n_mm and c.support_mm_per_n == 0.0

@@ -205,24 +205,29 @@ def test_the_bench_world_turns_its_phantom_with_the_platform():
     assert w.phantom_rotation == pytest.approx(turn @ r0, abs=1e-12)
 
 
+@pytest.mark.parametrize("turning", [True, False])
 @pytest.mark.parametrize("depth_mm", [4.0, 12.0])
-def test_the_axial_drag_acts_in_proportion_to_the_files_length_in_the_canal(depth_mm):
-    """A turning file sliding deeper at 1 mm/s through a lumen already of its shape (nothing
-    to cut: the walls' drag alone pushes it out): b v s / D at depth s, D the depth the drag
-    was fitted at; without a depth, b v at any depth."""
+def test_the_axial_drag_acts_in_proportion_to_the_files_length_in_the_canal(depth_mm,
+                                                                           turning):
+    """A file sliding deeper at 1 mm/s through a lumen already of its shape (nothing to cut:
+    the walls' drag alone pushes it out): (b v + C tanh(v / v0)) s / D at depth s, D the
+    depth the drag was fitted at, C the still file's friction (0 for a turning file); without
+    a depth, the same at any depth."""
     from dentibot.sim.canal import Canal
     from dentibot.sim.nitifile import NiTiFile
 
-    file, v, b = NiTiFile(), 1.0, 0.21
+    file, v, b, c, v0 = NiTiFile(), 1.0, 0.21, 0.85, 0.5
     shaped = CanalParams(initial_apical_mm=CanalParams.target_apical_mm,
                          initial_taper=CanalParams.target_taper)
     for fitted_at in (16.5, 0.0):
-        canal = Canal(replace(shaped, drag_n_s_per_mm=b, drag_depth_mm=fitted_at))
-        canal.turning = True                      # as the world sets it for a turning file
+        canal = Canal(replace(shaped, drag_n_s_per_mm=b, drag_still_coulomb_n=c,
+                              drag_v0_mm_s=v0, drag_depth_mm=fitted_at))
+        canal.turning = turning                   # as the world sets it each step
         s = depth_mm
         for _ in range(100):                      # the slip's 4 ms filter settles
             it = canal.interact((0.0, 0.0, s), (0.0, 0.0, 1.0), file, TS)
             s += v * TS
         assert it.engagement_mm2 == 0.0
         share = (s - v * TS) / fitted_at if fitted_at else 1.0
-        assert it.f_axial_n == pytest.approx(b * v * share, rel=1e-3)
+        held = 0.0 if turning else c * math.tanh(v / v0)
+        assert it.f_axial_n == pytest.approx((b * v + held) * share, rel=1e-3)
