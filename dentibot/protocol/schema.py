@@ -337,8 +337,9 @@ WORLDS: dict[str, dict[str, dict]] = {
 }
 #: The world of a protocol that names none. Still the thesis's: on the bench-fitted world the
 #: main job reaches the working length, but the controller is not yet made for everything a
-#: session or a trial does there (hand-guiding a still file inside a dragging canal runs
-#: away; a moving patient ends in the drift check far more often): docs/sim-to-real.md.
+#: session or a trial does there (hand-guiding with the file in the canal rings through the
+#: arm's delay; a swaying patient is not followed under the patient-moved trigger deep in
+#: the canal): docs/sim-to-real.md.
 DEFAULT_WORLD = "thesis"
 
 
