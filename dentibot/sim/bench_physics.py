@@ -24,6 +24,7 @@ import numpy as np
 from dentibot.control.feedrate import GEAR_RATIO, KM_MNM_PER_A
 from dentibot.sim.arm import ArmParams
 from dentibot.sim.canal import CanalParams
+from dentibot.sim.canal_kernels import axial_drag_n
 from dentibot.sim.ftsensor import FTSensorParams
 from dentibot.sim.handpiece import HandpieceParams
 from dentibot.sim.patient import BenchSquarePath
@@ -279,7 +280,7 @@ def axial_chase(t, platform_z_mm, config: str, arm_gain: float = BENCH.arm_gain,
     nd = max(int(round(dead_ms / 1000.0 / ts)), 0)
     a = 1.0 - math.exp(-ts / max(tau_ms / 1000.0, 1e-6))
     keep = math.exp(-ts / (lowpass_ms / 1000.0)) if lowpass_ms > 0.0 else 0.0
-    still = still_factor if config == "A" else 1.0
+    turning = config != "A"
     fz0 = fz_des_law(config, free_mnm, 0.0)
     y = p[0] - fz0 / bottom_n_mm           # tip seated under the initial insertion force
     seat = p[0]
@@ -297,10 +298,9 @@ def axial_chase(t, platform_z_mm, config: str, arm_gain: float = BENCH.arm_gain,
         slip += (((gap - prev_gap) / ts if gap >= 0.0 else 0.0) - slip) * af
         prev_gap = gap
         n = bottom_n_mm * -gap if gap < 0.0 else 0.0
-        inside = 1.0 - max(gap, 0.0) / drag_depth_mm if drag_depth_mm > 0.0 else 1.0
-        f_up = n - ((drag_n_s_per_mm * slip + coulomb_n * math.tanh(slip / v0_mm_s)) * still
-                    + (still_coulomb_n * math.tanh(slip / v0_mm_s) if config == "A" else 0.0)
-                    ) * max(inside, 0.0)
+        f_up = n - axial_drag_n(slip, turning, max(drag_depth_mm - max(gap, 0.0), 0.0),
+                                drag_n_s_per_mm, coulomb_n, v0_mm_s, still_factor,
+                                still_coulomb_n, drag_depth_mm)
         read += (f_up - read) * (1.0 - keep)
         tau = free_mnm + press_mnm_per_n * max(read, 0.0)
         fz = fz_des_law(config, tau, abs(read))

@@ -54,7 +54,8 @@ PARAM_FIELDS = (
     "torque_mnm_per_mm3", "friction_mu", "rub_mnm_per_mm", "rub_clearance_mm",
     "axial_n_per_mm2", "axial_n_per_mm3", "axial_n_s_per_mm3", "bottom_torque_mnm_per_n",
     "drag_n_s_per_mm", "drag_coulomb_n", "drag_static_factor", "drag_v0_mm_s",
-    "drag_depth_mm", "drag_still_coulomb_n", "drag_lat_n_s_per_mm", "support_mm_per_n", "support_extra_y_mm_per_n",
+    "drag_depth_mm", "drag_still_coulomb_n", "drag_lat_n_s_per_mm", "support_mm_per_n",
+    "support_extra_y_mm_per_n",
     "wall_n_mm_per_mm", "c_rev_per_rev", "c_fwd_per_rev", "cutting_energy_mj_mm3",
     "screw_n_per_mnm", "reverse_factor",
     # the file
@@ -81,8 +82,8 @@ O = _index(OUT_FIELDS)
  _T0X, _T0Y, _T0Z, _UX, _UY, _UZ, _VX, _VY, _VZ,
  _FEED_TAU, _DRAG_TAU, _DEADBAND, _WITHDRAW, _ACCESS, _BOTTOM_K, _K_A, _K_V, _K_DEB, _MU,
  _RUB, _RUB_CLEAR, _AX_A, _AX_DEB, _AX_V, _BOTTOM_TQ, _DRAG_B, _DRAG_C, _DRAG_STATIC,
- _DRAG_V0, _DRAG_DEPTH, _DRAG_STILL_C, _DRAG_LAT, _SUPPORT, _SUPPORT_Y, _WALL_K, _C_REV, _C_FWD, _U_S, _SCREW,
- _REVERSE, _F_TIP, _F_TAPER, _F_LENGTH, _B_STEP) = range(len(PARAM_FIELDS))
+ _DRAG_V0, _DRAG_DEPTH, _DRAG_STILL_C, _DRAG_LAT, _SUPPORT, _SUPPORT_Y, _WALL_K, _C_REV,
+ _C_FWD, _U_S, _SCREW, _REVERSE, _F_TIP, _F_TAPER, _F_LENGTH, _B_STEP) = range(len(PARAM_FIELDS))
 #: The outcome's indices (the world's kernel reads them too).
 (OUT_DEPTH, OUT_FX, OUT_FY, OUT_FZ, OUT_CONTACT, OUT_MX, OUT_MY, OUT_MZ, OUT_AXIAL,
  OUT_RESIST, OUT_ENGAGE, OUT_STRAIN) = range(len(OUT_FIELDS))
@@ -213,18 +214,29 @@ def interact(st: np.ndarray, cp: np.ndarray, R: np.ndarray, h: np.ndarray, s: np
 
 
 @njit(cache=True)
+def axial_drag_n(u: float, turning: bool, inside_mm: float, b: float, coulomb: float,
+                 v0: float, static: float, still_coulomb: float, depth_mm: float) -> float:
+    """The walls' axial drag (N, + pushes the file out) on a file slipping at ``u`` (mm/s,
+    + deeper) with ``inside_mm`` of it in the canal: ``b u + coulomb tanh(u / v0)``, both
+    ``static`` times harder and ``still_coulomb tanh(u / v0)`` more for a file that does not
+    turn, in proportion to ``inside_mm / depth_mm`` when ``depth_mm`` > 0 (the
+    :class:`~dentibot.sim.canal.CanalParams` drag fields). The canal's kernel and the bench's
+    reduced axial model (:func:`~dentibot.sim.bench_physics.axial_chase`) both take it."""
+    still = 1.0 if turning else static
+    c = coulomb * still + (0.0 if turning else still_coulomb)
+    fa = b * u * still + c * math.tanh(u / v0)
+    if depth_mm > 0.0:
+        fa *= inside_mm / depth_mm
+    return fa
+
+
+@njit(cache=True)
 def _drag_forces(st: np.ndarray, cp: np.ndarray, out: np.ndarray, eu: float, ev: float,
                  dt: float, s_tip: float) -> float:
     """Canal drag: adds the lateral damping to the lateral loads in ``out`` and returns the
-    axial drag (N, + pushes the file out), in proportion to the file's length in the canal
-    ``s_tip`` over ``drag_depth_mm`` when that is set (> 0)."""
-    u = st[_SLIP]
-    turning = st[_TURNING] != 0.0
-    still = 1.0 if turning else cp[_DRAG_STATIC]
-    coulomb = cp[_DRAG_C] * still + (0.0 if turning else cp[_DRAG_STILL_C])
-    fa = cp[_DRAG_B] * u * still + coulomb * math.tanh(u / cp[_DRAG_V0])
-    if cp[_DRAG_DEPTH] > 0.0:
-        fa *= s_tip / cp[_DRAG_DEPTH]
+    axial drag (:func:`axial_drag_n` with the file ``s_tip`` deep)."""
+    fa = axial_drag_n(st[_SLIP], st[_TURNING] != 0.0, s_tip, cp[_DRAG_B], cp[_DRAG_C],
+                      cp[_DRAG_V0], cp[_DRAG_STATIC], cp[_DRAG_STILL_C], cp[_DRAG_DEPTH])
     had, last_u, last_v = st[_HAS_E], st[_EU], st[_EV]
     st[_HAS_E], st[_EU], st[_EV] = 1.0, eu, ev
     if cp[_DRAG_LAT] != 0.0 and had != 0.0 and (
