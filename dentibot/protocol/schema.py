@@ -195,9 +195,10 @@ class SimulatorSpec(Strict):
                              "in full: the world the thesis's tables were tuned on)")
     canal_drag: Literal["none", "bench"] = Field(
         "bench", description="the canal walls' drag on the file: none, or bench (fitted to the "
-                            "bench's recordings: 0.19 N per mm/s along the canal while "
-                            "the file slides off its seat, 6 times that for a still file, "
-                            "0.10 N per mm/s across it)")
+                             "bench's recordings: 0.21 N per mm/s along the canal while the "
+                             "file slides off its seat 16.5 mm deep, in proportion to the "
+                             "depth, a still file held by 1.2 N of friction more; 0.10 N per "
+                             "mm/s across it)")
 
 
 class StalePeriods(Strict):
@@ -348,11 +349,12 @@ class Protocol(Strict):
     description: str = Field("", max_length=4000)
     seed: int = Field(0, ge=0, le=2**32 - 1, description="simulator seed")
     world: Literal["bench", "thesis"] = Field(
-        DEFAULT_WORLD, description="the defaults of the simulator and control sections: bench (the "
-                             "simulator fitted to the thesis bench's recordings, the "
-                             "controller as for a real Meca500) or thesis (the ideal arm, no "
-                             "canal drag, Table 4.3's admittance: the world the thesis's "
-                             "tables were tuned on); keys given in those sections win")
+        DEFAULT_WORLD,
+        description="the defaults of the simulator and control sections: bench (the simulator "
+                    "fitted to the thesis bench's recordings, the controller as for a real "
+                    "Meca500) or thesis (the ideal arm, no canal drag, Table 4.3's admittance: "
+                    "the world the thesis's tables were tuned on); keys given in those sections "
+                    "win")
     control: ControlSpec = ControlSpec()
     tool: ToolSpec = ToolSpec()
     file: FileSpec = FileSpec()
@@ -366,10 +368,11 @@ class Protocol(Strict):
     @model_validator(mode="before")
     @classmethod
     def _world_defaults(cls, data):
-        if not isinstance(data, dict) or data.get("world", DEFAULT_WORLD) not in WORLDS:
-            return data
+        world = data.get("world", DEFAULT_WORLD) if isinstance(data, dict) else None
+        if not isinstance(world, str) or world not in WORLDS:
+            return data                   # not a mapping, or a world the field refuses
         data = dict(data)
-        for section, defaults in WORLDS[data.get("world", DEFAULT_WORLD)].items():
+        for section, defaults in WORLDS[world].items():
             given = data.get(section)
             if given is None:
                 data[section] = dict(defaults)

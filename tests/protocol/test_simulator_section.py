@@ -56,10 +56,11 @@ def test_keys_a_protocol_gives_win_over_its_world():
     assert (plan.lateral_free_ref_mm, plan.axial_lag_s) == (0.0, 0.060)
 
 
-def test_an_unknown_world_is_refused_naming_the_field():
+@pytest.mark.parametrize("world", ["mars", "[bench, thesis]", "{bench: 1}"])
+def test_an_unknown_world_is_refused_naming_the_field(world):
     with pytest.raises(ProtocolFileError) as e:
-        parse_protocol(BASE + "world: mars\n")
-    assert "world" in str(e.value) and "mars" in str(e.value)
+        parse_protocol(BASE + f"world: {world}\n")
+    assert "world" in str(e.value) and "bench" in str(e.value) and "thesis" in str(e.value)
 
 
 def test_the_bench_arm_and_drag_reach_the_world_and_the_phantom_stays():
