@@ -207,13 +207,13 @@ def loop_gain(f_hz: float, gain: float, tau_ms: float, lowpass_ms: float, bottom
 
 
 def fit_axial(traj: pd.DataFrame, arm: dict, lowpass_ms: float,
-              bottom_n_mm: float | None = None) -> dict:
+              held_bottoms_n_mm: tuple = ()) -> dict:
     """Canal drag and bottom stiffness: least squares of the reduced axial model
     (dentibot.sim.bench_physics.axial_chase) on the tip-root distance along z and the
     contact force of the three recorded trials, given the platform's recorded z, the fitted
-    arm and the reading's low-pass ``lowpass_ms``; also with an unfiltered reading. With
-    ``bottom_n_mm`` the bottom is held there ("filtered, bottom held") and the drag fitted
-    alone."""
+    arm and the reading's low-pass ``lowpass_ms`` ("filtered"); also with an unfiltered
+    reading ("unfiltered"), and with the bottom held at each of ``held_bottoms_n_mm``, the
+    drag fitted alone (keyed by that bottom)."""
     from dentibot.sim.bench_physics import axial_chase
 
     runs = []
@@ -251,10 +251,8 @@ def fit_axial(traj: pd.DataFrame, arm: dict, lowpass_ms: float,
                 "bottom_n_mm": p[3], "lowpass_ms": lp,
                 "rms": float(np.sqrt(np.mean(res(p, lp) ** 2)))}
 
-    out = {"filtered": fit(lowpass_ms), "unfiltered": fit(0.0)}
-    if bottom_n_mm is not None:
-        out["filtered, bottom held"] = fit(lowpass_ms, bottom_n_mm)
-    return out
+    return {"filtered": fit(lowpass_ms), "unfiltered": fit(0.0),
+            **{bottom: fit(lowpass_ms, bottom) for bottom in held_bottoms_n_mm}}
 
 
 def chatter_rms(config: str, bottom_n_mm: float, seed: int = 1) -> float:
@@ -350,27 +348,27 @@ def main(argv=None) -> int:
         print(f"the reading's low-pass: {lp:.0f} ms turns the seated loop by -180 deg at the "
               f"recorded chatter, {f_hz:.2f} Hz (median peak of A and B at 1 N, "
               f"{chat.min():.2f}-{chat.max():.2f})")
-        ax = fit_axial(traj, arm_t, lp)
-        for name, v in ax.items():
+        held = [] if a.bottom is None else [a.bottom]
+        if a.chatter:
+            ch = bottom_from_chatter(trials)
+            held.insert(0, round(ch["bottom_n_mm"], 1))
+        ax = fit_axial(traj, arm_t, lp, tuple(held))
+        for name in ("filtered", "unfiltered"):
+            v = ax[name]
             print(f"canal axial, {name} reading: drag {v['drag_n_s_per_mm']:.3f} N per mm/s "
                   f"off the seat (a still file held by {v['still_coulomb_n']:.2f} N more), "
                   f"Coulomb {v['coulomb_n']:.3f} N, bottom {v['bottom_n_mm']:.2f} N/mm "
                   f"(rms residual {v['rms']:.3f})")
         g = loop_gain(f_hz, arm_t["gain"], arm_t["tau_ms"], lp, ax["filtered"]["bottom_n_mm"])
         print(f"  the seated loop's gain at {f_hz:.2f} Hz: {g:.2f} (1: it chatters undamped)")
-        held = []
         if a.chatter:
-            ch = bottom_from_chatter(trials)
             print(f"the bottom from the seated file's chatter: {ch['bottom_n_mm']:.2f} N/mm "
                   f"(recorded Fz_chatter_rms A {ch['real']['A']:.3f}, B {ch['real']['B']:.3f}"
                   " N; simulated A/B, N, with the bottom at " + ", ".join(
                       f"{k:g} N/mm: {sa:.3f}/{sb:.3f}" for k, sa, sb in
                       zip(ch["grid"], ch["sim"]["A"], ch["sim"]["B"], strict=True)) + ")")
-            held.append(round(ch["bottom_n_mm"], 1))
-        if a.bottom is not None:
-            held.append(a.bottom)
         for bottom in held:
-            v = fit_axial(traj, arm_t, lp, bottom_n_mm=bottom)["filtered, bottom held"]
+            v = ax[bottom]
             print(f"canal axial, the bottom held at {bottom:g} N/mm: drag "
                   f"{v['drag_n_s_per_mm']:.3f} N per mm/s off the seat (a still file held by "
                   f"{v['still_coulomb_n']:.2f} N more), Coulomb {v['coulomb_n']:.3f} N (rms "
