@@ -32,7 +32,7 @@ def test_sim_serve_passes_the_node_id_to_the_epos4_simulator(monkeypatch, capsys
 
     class FakeBot:
         def __init__(self, world_config, ports):
-            seen["ports"] = ports
+            seen["ports"], seen["world"] = ports, world_config
             self.ports = {"host": ports.host, "meca_port": 1, "meca_monitor_port": 2,
                           "netft_port": 3, "netft_http_port": 4, "modbus_port": 5,
                           "can_port": 6, "can_channel": "vcan0"}
@@ -47,6 +47,12 @@ def test_sim_serve_passes_the_node_id_to_the_epos4_simulator(monkeypatch, capsys
     assert main(["sim", "serve", "--node-id", "7", "--duration", "0"]) == 0
     assert seen["ports"].node_id == 7
     assert "EPOS4 node 7" in capsys.readouterr().out
+    # the served physics is the protocols' default world's: the bench-fitted arm and drag
+    world = seen["world"]
+    assert (world.arm.vel_dead_time_s, world.arm.vel_gain) == (0.016, 0.804)
+    assert world.canal.drag_n_s_per_mm == 0.21
+    assert main(["sim", "serve", "--world", "thesis", "--duration", "0"]) == 0
+    assert seen["world"].arm.vel_gain == 1.0 and seen["world"].canal.drag_n_s_per_mm == 0.0
 
 
 @pytest.mark.parametrize("argv, level, as_json", [

@@ -28,7 +28,7 @@ from dentibot.control.filebeam import FileBeam
 from dentibot.errors import ConfigError
 from dentibot.io.devices import DevicesConfig, open_devices
 from dentibot.protocol.loader import ProtocolFileError
-from dentibot.protocol.schema import LIMIT_SHARE_OF_STRENGTH, Protocol
+from dentibot.protocol.schema import LIMIT_SHARE_OF_STRENGTH, WORLDS, Protocol, SimulatorSpec
 from dentibot.runtime.config import RuntimeConfig, Thresholds, ToolGeometry, TreatmentPlan
 from dentibot.runtime.control_task import Runtime
 from dentibot.runtime.tool import tool_matrix
@@ -63,6 +63,22 @@ SIGNALS = {signal.SIGINT: "stopped by the operator (Ctrl-C)",
            signal.SIGTERM: "terminated (SIGTERM)"}
 
 
+def simulator_physics(spec: SimulatorSpec, canal: CanalParams) -> tuple[ArmParams, CanalParams]:
+    """The arm, and ``canal`` with the walls' drag, that a protocol's ``simulator`` section
+    asks for (ideal or fitted to the bench)."""
+    if spec.canal_drag == "bench":
+        canal = BENCH.canal_drag(canal)
+    return (BENCH.arm() if spec.arm == "bench" else ArmParams()), canal
+
+
+def served_world(world: str, seed: int = 0, motion: str = "static") -> WorldConfig:
+    """A world without a protocol (the wire simulators'): the default phantom and file, with
+    the physics (arm, canal drag) of the protocols' ``world`` of that name (:data:`WORLDS`)."""
+    arm, canal = simulator_physics(SimulatorSpec(**WORLDS[world].get("simulator", {})),
+                                   CanalParams())
+    return WorldConfig(seed=seed, motion=motion, arm=arm, canal=canal)
+
+
 def world_config(p: Protocol) -> WorldConfig:
     ph = p.phantom
     curve = {}
@@ -74,11 +90,9 @@ def world_config(p: Protocol) -> WorldConfig:
     canal = CanalParams(working_length_mm=ph.working_length_mm, tilt_deg=ph.tilt_deg,
                         **curve, **(PRESHAPED if ph.preshaped else {}),
                         **material_params(ph.material.name, **ph.material.overrides()))
-    if p.simulator.canal_drag == "bench":
-        canal = BENCH.canal_drag(canal)
+    arm, canal = simulator_physics(p.simulator, canal)
     return WorldConfig(
-        seed=p.seed, ts=1.0 / p.control.rate_hz, tool=tool,
-        arm=BENCH.arm() if p.simulator.arm == "bench" else ArmParams(),
+        seed=p.seed, ts=1.0 / p.control.rate_hz, tool=tool, arm=arm,
         sensor=FTSensorParams(offset_mm=p.tool.sensor_offset_mm),
         file=NiTiFile(size=p.file.size, taper=p.file.taper, length_mm=float(p.file.length_mm),
                       torsional_strength_mnm=p.file.torsional_strength_mnm),

@@ -526,6 +526,12 @@ CHILD_NICE = 3
 #: never repeated: the first attempt that drilled is the one measured.
 ATTEMPTS = 3
 START_BUDGET_S = 12.0
+#: How long after its signal the file is watched for a stop (s). Killed or frozen, the
+#: controller is gone: the drive stops the file by itself within 100 ms. Interrupted, it
+#: withdraws the file first (0.5-1 mm at the retraction force, through the lag along the
+#: file and the walls' drag of the default world: about 0.3 s), then stops it.
+KILL_WATCH_S = 0.5
+GRACEFUL_WATCH_S = 2.0
 
 
 @contextlib.asynccontextmanager
@@ -538,10 +544,11 @@ async def child_simulators(directory: Path, seed: int = 1):
     controller child's control loop runs at SCHED_FIFO, and the simulators at the ordinary
     priority were starved by it and by the machine's other jobs (a drive seeing its host's
     heartbeat 30 ms late before the file turned)."""
+    from dentibot.app.runner import served_world
     from dentibot.io.devices import devices_yaml
+    from dentibot.protocol.schema import DEFAULT_WORLD
     from dentibot.runtime.clock import SIMULATOR_FIFO_PRIORITY, raised_priority
     from dentibot.sim.serve import ServePorts, VirtualDentiBot
-    from dentibot.sim.world import WorldConfig
 
     ports = ServePorts(meca_port=0, netft_port=0, netft_http_port=0, modbus_port=0,
                        can_port=0)
@@ -549,7 +556,7 @@ async def child_simulators(directory: Path, seed: int = 1):
     gc.disable()
     try:
         with raised_priority(fifo_priority=SIMULATOR_FIFO_PRIORITY, threads_inherit=True):
-            async with VirtualDentiBot(WorldConfig(seed=seed), ports) as bot:
+            async with VirtualDentiBot(served_world(DEFAULT_WORLD, seed), ports) as bot:
                 devices = Path(directory) / "devices.yaml"
                 # the F/T driver's own freshness bound as loose as the protocol's (50
                 # periods): its 20 ms hardware default acts first otherwise
@@ -662,7 +669,8 @@ async def run_host_fault(name: str, seed: int = 1, directory: Path | None = None
                     log.mark("drive_fault", lambda: node.heartbeat_errors > 0)
                     log.mark("withdrawn", lambda: true_depth_mm(world) <= 0.0)
                     t_sig = time.monotonic()
-                    stopped = await signal_and_measure(proc, sig, log)
+                    stopped = await signal_and_measure(
+                        proc, sig, log, GRACEFUL_WATCH_S if graceful else KILL_WATCH_S)
                     rc = None
                     if graceful:
                         try:

@@ -12,11 +12,12 @@ import contextlib
 import gc
 from pathlib import Path
 
+from dentibot.app.runner import served_world
 from dentibot.cli.common import user_errors
 from dentibot.io.devices import devices_yaml
+from dentibot.protocol.schema import DEFAULT_WORLD, WORLDS
 from dentibot.runtime.clock import SIMULATOR_FIFO_PRIORITY, raised_priority
 from dentibot.sim.serve import ServePorts, VirtualDentiBot
-from dentibot.sim.world import WorldConfig
 
 
 async def _serve(args: argparse.Namespace) -> None:
@@ -24,7 +25,7 @@ async def _serve(args: argparse.Namespace) -> None:
                        netft_http_port=args.netft_http_port, modbus_port=args.modbus_port,
                        can_port=args.can_port, node_id=args.node_id,
                        can_channel=args.can_channel, can_interface=args.can_interface)
-    async with VirtualDentiBot(WorldConfig(seed=args.seed, motion=args.motion), ports) as bot:
+    async with VirtualDentiBot(served_world(args.world, args.seed, args.motion), ports) as bot:
         # Everything built so far leaves the collector's view: a full collection over it took
         # 35-85 ms under load, long enough for the F/T stream to look stale to a driver.
         gc.freeze()
@@ -82,6 +83,10 @@ def add_parser(sub) -> None:
     serve.add_argument("--seed", type=int, default=0, help="simulated world seed")
     serve.add_argument("--motion", default="static", choices=["static", "square", "head"],
                        help="patient / phantom motion")
+    serve.add_argument("--world", default=DEFAULT_WORLD, choices=sorted(WORLDS),
+                       help="the simulated physics, as a protocol's world: bench (the arm and "
+                            "the canal's drag fitted to the thesis bench's recordings) or "
+                            "thesis (the ideal arm, no drag)")
     serve.add_argument("--duration", type=float, help="stop after this many seconds")
     serve.add_argument("--write-devices", metavar="FILE",
                        help="write the device configuration for the served ports (the file "

@@ -336,12 +336,10 @@ WORLDS: dict[str, dict[str, dict]] = {
     "thesis": {"simulator": {"arm": "ideal", "canal_drag": "none"},
                "control": {"lateral_free_ref_mm": 0.0, "axial_lag_ms": None}},
 }
-#: The world of a protocol that names none. Still the thesis's: on the bench-fitted world the
-#: main job reaches the working length, but the controller is not yet made for everything a
-#: session or a trial does there (hand-guiding with the file in the canal rings through the
-#: arm's delay; a swaying patient is not followed under the patient-moved trigger deep in
-#: the canal): docs/sim-to-real.md.
-DEFAULT_WORLD = "thesis"
+#: The world of a protocol that names none (``dentibot run``, the session): the bench-fitted
+#: one, where a controller tuned in simulation meets what the real bench does
+#: (docs/sim-to-real.md).
+DEFAULT_WORLD = "bench"
 
 
 class Protocol(Strict):

@@ -1,5 +1,5 @@
-"""Step 5 of the tick (docs/architecture.md, "The tick"): the arm's command of the state's
-mode, and the fault reaction that stops the file and the arm.
+"""Steps 4-5 of the tick (docs/architecture.md, "The tick"): the state's mode put in force,
+the arm's command of that mode, and the fault reaction that stops the file and the arm.
 
 A command a device refuses or cannot deliver raises; the control task turns that into the
 latched fault of the same tick (:meth:`~dentibot.runtime.control_task.Runtime.tick`).
@@ -16,7 +16,9 @@ import structlog
 from dentibot.control.admittance_kernels import lateral_scale
 from dentibot.control.canal_axis import CanalAxisServo
 from dentibot.control.tick import admittance_command
+from dentibot.runtime.estimate import MotorView
 from dentibot.states.behaviours import feed_force_n
+from dentibot.states.modes import Mode, admittance_params, drag_point_note
 
 log = structlog.get_logger("dentibot.runtime")
 
@@ -46,6 +48,25 @@ async def stop_all(motor, arm, unfinished: set[asyncio.Task]) -> None:
         t.add_done_callback(unfinished.discard)
         log.warning("stop command not acknowledged in time: left to finish",
                     bound_s=STOP_BOUND_S)
+
+
+def apply_mode(rt, mode: Mode, est) -> None:
+    """``mode`` in force (``rt.mode``): its admittance's parameters and reference point when
+    they change (the filter restarts from rest, and ``est``'s wrench is redone at the new
+    point), and a note when dragging's reference point moves (``drag_point``)."""
+    was, rt.mode = rt.mode, mode
+    note = drag_point_note(was, mode)
+    if note is not None:
+        rt.note("drag_point", note)
+    if mode.admittance is None:
+        return
+    params = admittance_params(mode, rt.cfg.plan)
+    if (params, mode.ref) != (rt.admittance.params, rt._ref):
+        rt.admittance.set_params(params, rt.cfg.tool.grip_h_mm if mode.ref == "A" else None)
+        rt._ref = mode.ref
+        if est is not None:                  # the reference point changed: step 2 again
+            est2 = rt._estimate(est.q_deg, est.wrench_s, MotorView(est))
+            est.wrench_h, est.force_norm_n = est2.wrench_h, est2.force_norm_n
 
 
 async def arm_command(rt, est):

@@ -23,15 +23,15 @@ from dentibot.control.kinematics import Meca500
 from dentibot.control.wrench import GravityModel
 from dentibot.errors import DentibotError, DeviceFault
 from dentibot.runtime.clock import Clock, DeadlineStats, realtime_policy
-from dentibot.runtime.actuate import arm_command, recover_all, stop_all
+from dentibot.runtime.actuate import apply_mode, arm_command, recover_all, stop_all
 from dentibot.runtime.config import RuntimeConfig
-from dentibot.runtime.estimate import Devices, Estimate, MotorView, estimate
+from dentibot.runtime.estimate import Devices, Estimate, estimate
 from dentibot.runtime.rows import telemetry_row
 from dentibot.runtime.supervisor import Finding, Supervisor
 from dentibot.runtime.tool import reference_transforms, set_tool_tip, tool_matrix
 from dentibot.runtime.tooth import ToothFrame
-from dentibot.states.behaviours import Context, make_behaviours
-from dentibot.states.modes import MODES, Mode, admittance_params, send_file_command
+from dentibot.states.behaviours import Context, current_mode, make_behaviours
+from dentibot.states.modes import MODES, Mode, send_file_command
 from dentibot.states.strategies import make_strategy
 from dentibot.states.treatment import Refusal, Treatment
 
@@ -214,6 +214,9 @@ class Runtime:
         try:
             if tr.state != self._state:
                 await self._enter(tr.state, est)
+            elif est is not None and self.mode.arm == "admittance" and (
+                    m := current_mode(tr.state, self.ctx, self)) is not self.mode:
+                apply_mode(self, m, est)              # dragging: the file went in or out
             if est is not None:
                 qdot = await arm_command(self, est)
         except (DentibotError, OSError) as exc:
@@ -273,19 +276,12 @@ class Runtime:
         """Entry of ``state``: the mode's arm and file set-up, then the state's behaviour."""
         prev = self._state
         self._state = state
-        mode = self.mode = MODES[state]
+        mode = current_mode(state, self.ctx, self)
         if mode.arm == "stop":
+            self.mode = mode
             await self.stop_devices()
             return
-        if mode.admittance is not None:
-            params = admittance_params(mode, self.cfg.plan)
-            ref_h = self.cfg.tool.grip_h_mm if mode.ref == "A" else None
-            if (params, mode.ref) != (self.admittance.params, self._ref):
-                self.admittance.set_params(params, ref_h)
-                self._ref = mode.ref
-                if est is not None:   # the reference point changed: redo step 2 with it
-                    est2 = self._estimate(est.q_deg, est.wrench_s, MotorView(est))
-                    est.wrench_h, est.force_norm_n = est2.wrench_h, est2.force_norm_n
+        apply_mode(self, mode, est)
         self.behaviours[state].enter(self.ctx, self, est, prev)
         self.file_cmd = await send_file_command(self.dev.motor, mode, self.cfg, self.file_cmd)
 

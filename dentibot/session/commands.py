@@ -65,7 +65,8 @@ _SPECS = (
     CommandSpec("drag", "drag",
                 "dragging: the arm follows the hand",
                 "dragging: the arm yields to the hand at the grip (Table 4.3 dragging "
-                "admittance) until the next command"),
+                "admittance) until the next command; with the file in the canal, at the file "
+                "tip with self-alignment's gains"),
     CommandSpec("align", "align [fz_n=1.0] [rpm=0] [config=A|B|C] [tau_d_mnm=40]",
                 "self-alignment, f_d = (0, 0, fz)",
                 "self-alignment with f_d = (0, 0, fz) until the next command (config: thesis "

@@ -24,6 +24,7 @@ from dentibot.control.feedrate import FeedrateController
 from dentibot.control.torque_rise import TorqueRise
 from dentibot.states import feeding_kernels as fk
 from dentibot.states.load_calibration import LoadCalibration, TcpRoutine
+from dentibot.states.modes import Mode, state_mode
 from dentibot.states.strategies import Decision, DrillingStrategy
 from dentibot.states.treatment import LEAF_STATES
 
@@ -128,6 +129,12 @@ class Behaviour:
         if g is not None:
             return [g]
         return [*self.events(ctx, rt, est), *self.overload(ctx, rt, est)]
+
+
+def current_mode(state: str, ctx: Context, rt) -> Mode:
+    """The mode of ``state`` where the file is now (:func:`~dentibot.states.modes.state_mode`):
+    in the canal while a depth reference is held or the tip may be in (:class:`Free`)."""
+    return state_mode(state, ctx.depth_ref is not None or rt.treatment.maybe_in)
 
 
 class Free(Behaviour):

@@ -85,3 +85,32 @@ MODES: dict[str, Mode] = {
     "done": Mode("hold"),
     "fault": Mode("stop"),
 }
+
+#: Dragging while the file is in the canal: the arm yields to the hand at the file tip with
+#: self-alignment's gains (and the plan's lag along the file), the insertion force zero and
+#: the file still. At the grip with Table 4.3's dragging gains (3x self-alignment's on the
+#: translations), the walls' force on the tip is also a moment about the grip, which the
+#: rotations answer: the tip moves sideways at roughly (grip-to-tip)^2 x 9.4 rad/s per N m,
+#: and through the arm's 22 ms that loop rings against the walls (about 25 Hz on the
+#: bench-fitted world, 3 mm deep) until the tip-speed limit faults. About the tip, a turn
+#: of the handpiece does not move the tip, and the translations are those the file already
+#: bears when it is fed.
+DRAGGING_IN_CANAL = Mode(**_DRILL, feed="zero", file="stop")
+
+
+def state_mode(state: str, file_in_canal: bool) -> Mode:
+    """The mode of ``state``: :data:`MODES`, except dragging with the file in the canal
+    (:data:`DRAGGING_IN_CANAL`)."""
+    if state == "dragging" and file_in_canal:
+        return DRAGGING_IN_CANAL
+    return MODES[state]
+
+
+def drag_point_note(was: Mode, mode: Mode) -> str | None:
+    """What an operator is told when ``mode`` follows ``was``: where dragging now yields to
+    the hand, when that is the tip or goes back to the grip; None otherwise."""
+    if mode is DRAGGING_IN_CANAL and was is not DRAGGING_IN_CANAL:
+        return "tip: the file is in the canal"
+    if was is DRAGGING_IN_CANAL and mode is MODES["dragging"]:
+        return "grip: the file is out of the canal"
+    return None

@@ -25,8 +25,10 @@ steps:
 """
 
 
-def test_the_bench_world_is_the_fitted_arm_and_drag_and_the_controller_for_a_late_arm():
-    p = parse_protocol(BASE + "world: bench\n")
+@pytest.mark.parametrize("extra", ["", "world: bench\n"])
+def test_by_default_the_bench_world_the_fitted_arm_and_drag_and_the_controller_for_them(extra):
+    p = parse_protocol(BASE + extra)
+    assert p.world == "bench"
     cfg = world_config(p)
     assert (cfg.arm.vel_dead_time_s, cfg.arm.vel_gain, cfg.arm.servo_tau_s) == \
         (0.016, 0.804, 0.0063)
@@ -35,9 +37,8 @@ def test_the_bench_world_is_the_fitted_arm_and_drag_and_the_controller_for_a_lat
     assert (plan.lateral_free_ref_mm, plan.axial_lag_s) == (18.0, 0.060)
 
 
-@pytest.mark.parametrize("extra", ["", "world: thesis\n"])
-def test_by_default_the_thesis_world_the_ideal_arm_no_drag_and_table_4_3_alone(extra):
-    p = parse_protocol(BASE + extra)
+def test_the_thesis_world_is_the_ideal_arm_no_drag_and_table_4_3_alone():
+    p = parse_protocol(BASE + "world: thesis\n")
     assert p.world == "thesis"
     cfg = world_config(p)
     assert cfg.arm == ArmParams()

@@ -9,11 +9,12 @@ import time
 import numpy as np
 import pytest
 
-from dentibot.control.admittance import DRAGGING
+from dentibot.control.admittance import DRAGGING, SELF_ALIGNMENT
 from dentibot.protocol.loader import parse_protocol
 from dentibot.runtime.clock import LockStepClock
 from dentibot.runtime.gate import GateClosed, TickGate
 from dentibot.session.controller import SessionController, SessionOptions
+from dentibot.states.modes import DRAGGING_IN_CANAL
 from dentibot.telemetry.reader import read_recording
 from dentibot.telemetry.summary import summarize_file
 
@@ -358,6 +359,55 @@ async def test_esc_after_dragging_the_file_in_before_any_alignment_withdraws_it(
     assert reply.kind == "ok" and c.state == "idle"
     assert _depths(c)[1] <= 0.0                             # out, by the truth
     assert ("retract", "dragging", "treating.retracting") in c.runtime.treatment.history
+    await say(c, "quit")
+
+
+def _tip_along(c, axis) -> float:
+    """The simulator's file tip along ``axis`` ({0}, unit), mm."""
+    return float(np.dot(c.world.tip_0, axis))
+
+
+async def test_dragging_with_the_file_in_the_canal_yields_at_the_tip_with_self_alignments_gain(
+        stepped):
+    """The file 3 mm in (the default world: the bench-fitted arm and walls), the operator stops
+    and drags. The arm yields at the file tip with self-alignment's gains, not at the grip
+    with dragging's (which rang against the walls there until the tip-speed limit faulted):
+    a hand pulling 1 N along the file draws it out at no more than self-alignment's
+    k/b = 6.25 mm/s per N (the arm realises less, the walls hold some); once out, the grip is
+    the reference again and the same hand moves it faster than that, at most at dragging's
+    k/b = 18.75 mm/s per N."""
+    c = stepped
+    c.opt.calibrated = True
+    await say(c, "connect")
+    await say(c, "align")
+    await c.advance(20.0, until=lambda r: (r.last_row or {}).get("depth_mm") is not None
+                    and r.last_row["depth_mm"] > 3.0)
+    assert (await say(c, "stop")).kind == "ok"
+    await c.advance(ticks=10)
+    assert (await say(c, "drag")).kind == "ok"
+    await c.advance(ticks=50)
+    rt = c.runtime
+    assert rt.mode is DRAGGING_IN_CANAL and rt.admittance.ref_point_h_mm is None
+    w = c.world
+    axis = np.array(w.axis_0)
+    w.hand_force_0 = tuple(-1.0 * axis)                 # pull along the file: out
+    await c.advance(0.1)                                 # past the arm's delay and lag
+    s0 = _tip_along(c, axis)
+    await c.advance(0.2)
+    v_in = (s0 - _tip_along(c, axis)) / 0.2
+    assert _depths(c)[1] > 0.5                           # still in, by the truth
+    k_b_align = SELF_ALIGNMENT.k / SELF_ALIGNMENT.b[2]
+    assert 0.25 * k_b_align < v_in < k_b_align
+    await c.advance(5.0, until=lambda r: r.mode.ref == "A")
+    assert rt.mode.ref == "A" and _depths(c)[1] <= 0.0 and c.state == "dragging"
+    await c.advance(0.1)
+    s0 = _tip_along(c, axis)
+    await c.advance(0.2)
+    v_out = (s0 - _tip_along(c, axis)) / 0.2
+    assert k_b_align < v_out < DRAGGING.k / DRAGGING.b[2]
+    w.hand_force_0 = (0.0, 0.0, 0.0)
+    notes = [d for _, kind, d in rt.events_log if kind == "drag_point"]
+    assert [n.split(":")[0] for n in notes] == ["tip", "grip"]
     await say(c, "quit")
 
 
