@@ -128,10 +128,13 @@ def send_block(st, msg, head_size, k0_at, n_at, rows, start, stop, k0, incoming,
     for b in range(4):
         msg[n_at + b] = (n >> (8 * b)) & 0xFF
     at = head_size
+    w = rows.shape[1]
     for i in range(start, stop):
-        for b in range(rows.shape[1]):
-            msg[at + b] = rows[i, b]
-        at += rows.shape[1]
+        dst = msg[at:at + w]      # a view indexed from 0: the copy compiles to a few
+        src = rows[i]             # instructions a byte (``msg[at + b]`` takes 20x longer)
+        for b in range(w):
+            dst[b] = src[b]
+        at += w
     if not _io_all(st[ROWS_FD], msg, 0, size, False):
         st[STATUS] = PIPE
         return False
