@@ -189,3 +189,28 @@ def test_the_foreign_can_master_gives_the_motor_stream_its_extra_slack():
     assert wire_stale_periods("emcy") == {"arm": 20, "ft": 20, "motor": 20, "aux": 100}
     assert wire_stale_periods("can_foreign_master") == {"arm": 20, "ft": 20, "motor": 35,
                                                         "aux": 100}
+
+
+@pytest.mark.parametrize("failures, calls, ok", [(2, 3, True), (3, 3, False)])
+async def test_a_wire_fault_whose_set_up_fails_is_set_up_again_never_measured_twice(
+        monkeypatch, failures, calls, ok):
+    """A procedure not drilling when the fault is due (the set-up on a loaded machine) is set
+    up anew, at most ATTEMPTS (3) times; a run that reached the injection is never run
+    again."""
+    import dentibot.app.selftest_wire as sw
+
+    seen = []
+
+    async def attempt(name, seed, settle_s, watch_s):
+        seen.append(name)
+        if len(seen) <= failures:
+            raise sw.NotReady("wire selftest: not drilling before the injection (fault)")
+        return "measured"
+
+    monkeypatch.setattr(sw, "_run_runtime_fault", attempt)
+    if ok:
+        assert await run_wire_fault("emcy") == "measured"
+    else:
+        with pytest.raises(sw.NotReady, match="not drilling before the injection"):
+            await run_wire_fault("emcy")
+    assert seen == ["emcy"] * calls and sw.ATTEMPTS == 3
