@@ -283,6 +283,15 @@ async def test_devices_over_the_wire_connect_refuse_estop_and_close_everything()
 
 
 # ------------------------------------------------------------------ depth reference
+async def _align_3_mm_in(c) -> None:
+    """Connected and aligning until the file is more than 3 mm in (its estimated depth)."""
+    c.opt.calibrated = True
+    await say(c, "connect")
+    await say(c, "align")
+    await c.advance(20.0, until=lambda r: (r.last_row or {}).get("depth_mm") is not None
+                    and r.last_row["depth_mm"] > 3.0)
+
+
 def _depths(c) -> tuple[float, float]:
     """(estimated depth, the simulator's true depth) of the last tick, mm."""
     row = c.runtime.last_row
@@ -296,11 +305,7 @@ async def test_depth_counts_from_the_same_orifice_after_a_stop_a_drag_and_a_new_
     and a retraction withdraws the file out of the canal, not to where the second alignment
     began."""
     c = stepped
-    c.opt.calibrated = True
-    await say(c, "connect")
-    await say(c, "align")
-    await c.advance(20.0, until=lambda r: (r.last_row or {}).get("depth_mm") is not None
-                    and r.last_row["depth_mm"] > 3.0)
+    await _align_3_mm_in(c)
     est0, true0 = _depths(c)
     assert est0 > 3.0 and true0 > 2.5
     assert (await say(c, "stop")).kind == "ok"
@@ -324,11 +329,7 @@ async def test_esc_during_alignment_withdraws_a_file_that_is_in_the_canal(steppe
     """Esc (stop safely) in self-alignment with the file 3 mm in: the file comes out of the
     canal (the simulator's truth), it is not left where it was."""
     c = stepped
-    c.opt.calibrated = True
-    await say(c, "connect")
-    await say(c, "align")
-    await c.advance(20.0, until=lambda r: (r.last_row or {}).get("depth_mm") is not None
-                    and r.last_row["depth_mm"] > 3.0)
+    await _align_3_mm_in(c)
     assert _depths(c)[1] > 2.5
     c.procedure.clock.release()                 # the safe stop takes the ticks it needs
     reply = await asyncio.wait_for(c.safe_stop(), 60.0)
@@ -377,11 +378,7 @@ async def test_dragging_with_the_file_in_the_canal_yields_at_the_tip_with_self_a
     the reference again and the same hand moves it faster than that, at most at dragging's
     k/b = 18.75 mm/s per N."""
     c = stepped
-    c.opt.calibrated = True
-    await say(c, "connect")
-    await say(c, "align")
-    await c.advance(20.0, until=lambda r: (r.last_row or {}).get("depth_mm") is not None
-                    and r.last_row["depth_mm"] > 3.0)
+    await _align_3_mm_in(c)
     assert (await say(c, "stop")).kind == "ok"
     await c.advance(ticks=10)
     assert (await say(c, "drag")).kind == "ok"
