@@ -51,7 +51,7 @@ class FTSensorParams:
     noise_n: tuple = (0.01, 0.01, 0.02)
     noise_nm: float = 0.0003
     # time constant (s) of a first-order low-pass on the reading, sampled every world period;
-    # 0: none (the default world's sensor is read unfiltered).
+    # 0: none (a protocol's sensor is read unfiltered, as a real Net F/T's).
     lowpass_s: float = 0.0
 
     def __post_init__(self) -> None:

@@ -1,7 +1,7 @@
-"""A protocol's ``world`` and ``simulator`` section: the thesis's world (the ideal arm, a
-drag-free canal, Table 4.3's admittance) unless it names the world fitted to the thesis bench
-or asks for its physics, which then reach the world the run steps; the controller's defaults
-go with the world."""
+"""A protocol's ``world`` and ``simulator`` section: the world fitted to the thesis bench
+unless it names the thesis's world (the ideal arm, a drag-free canal, Table 4.3's admittance)
+or asks for other physics, which then reach the world the run steps; the controller's
+defaults go with the world."""
 
 from __future__ import annotations
 
