@@ -255,6 +255,12 @@ def fit_axial(traj: pd.DataFrame, arm: dict, lowpass_ms: float,
             **{bottom: fit(lowpass_ms, bottom) for bottom in held_bottoms_n_mm}}
 
 
+def _drag_line(v: dict) -> str:
+    """One fit of :func:`fit_axial`'s drag, as printed."""
+    return (f"drag {v['drag_n_s_per_mm']:.3f} N per mm/s off the seat (a still file held by "
+            f"{v['still_coulomb_n']:.2f} N more), Coulomb {v['coulomb_n']:.3f} N")
+
+
 def chatter_rms(config: str, bottom_n_mm: float, seed: int = 1) -> float:
     """``Fz_chatter_rms_N`` of ``config``'s run of experiment 1 on the bench-fitted world
     with its bottom at ``bottom_n_mm`` (the experiment's own figure, the same definition as
@@ -355,10 +361,8 @@ def main(argv=None) -> int:
         ax = fit_axial(traj, arm_t, lp, tuple(held))
         for name in ("filtered", "unfiltered"):
             v = ax[name]
-            print(f"canal axial, {name} reading: drag {v['drag_n_s_per_mm']:.3f} N per mm/s "
-                  f"off the seat (a still file held by {v['still_coulomb_n']:.2f} N more), "
-                  f"Coulomb {v['coulomb_n']:.3f} N, bottom {v['bottom_n_mm']:.2f} N/mm "
-                  f"(rms residual {v['rms']:.3f})")
+            print(f"canal axial, {name} reading: {_drag_line(v)}, bottom "
+                  f"{v['bottom_n_mm']:.2f} N/mm (rms residual {v['rms']:.3f})")
         g = loop_gain(f_hz, arm_t["gain"], arm_t["tau_ms"], lp, ax["filtered"]["bottom_n_mm"])
         print(f"  the seated loop's gain at {f_hz:.2f} Hz: {g:.2f} (1: it chatters undamped)")
         if a.chatter:
@@ -369,9 +373,7 @@ def main(argv=None) -> int:
                       zip(ch["grid"], ch["sim"]["A"], ch["sim"]["B"], strict=True)) + ")")
         for bottom in held:
             v = ax[bottom]
-            print(f"canal axial, the bottom held at {bottom:g} N/mm: drag "
-                  f"{v['drag_n_s_per_mm']:.3f} N per mm/s off the seat (a still file held by "
-                  f"{v['still_coulomb_n']:.2f} N more), Coulomb {v['coulomb_n']:.3f} N (rms "
+            print(f"canal axial, the bottom held at {bottom:g} N/mm: {_drag_line(v)} (rms "
                   f"residual {v['rms']:.3f})")
     return 0
 
