@@ -147,10 +147,17 @@ class TickBlock:
         """The ``/tick`` messages (CDR) of rows ``start`` to ``stop``: the bytes of
         ``Codec(TICK_FIELDS).encode(row)`` for each row of :meth:`rows`, written by copying
         the block's columns into a template of the rows' shared values."""
+        if len(self.cols[start:stop]) == 0:
+            return []
+        buf, enc = self.tick_words(start, stop)
+        return enc.messages(buf)
+
+    def tick_words(self, start: int = 0, stop: int | None = None) -> tuple[np.ndarray, Any]:
+        """:meth:`tick_cdr`'s messages as the rows of a float64 buffer, with their
+        :class:`~dentibot.telemetry.cdr.BlockEncoder` (its ``size``, and ``messages`` to cut
+        them out): each message 4 bytes into its row."""
         cols = self.cols[start:stop]
         n = cols.shape[0]
-        if n == 0:
-            return []
         key = (self.step, self.state, self.working_length_mm, self.reversals,
                self.phantom_euler)
         tpl = _TEMPLATES.get(key)
@@ -163,7 +170,7 @@ class TickBlock:
         buf[:, tpl.slots] = cols[:, tpl.cols]
         buf[:, tpl.t] = ticks * self.ts                  # t = k ts, as the rows compute it
         buf.view(np.int64)[:, tpl.tick] = ticks
-        return tpl.enc.messages(buf)
+        return buf, tpl.enc
 
     def packed(self) -> list:
         """The block's wire form: a list of buffers to write one after the other (no copy

@@ -60,7 +60,7 @@ from dentibot.telemetry.quaternion_kernels import (
     qrotate,
 )
 from dentibot.telemetry.quaternion_kernels import quat_from_euler_xyz_deg as _quat_euler
-from dentibot.telemetry.tf_cdr import tf_encoder
+from dentibot.telemetry.tf_cdr import TfEncoder, tf_encoder
 
 __all__ = [
     "FOXGLOVE_TOPICS",
@@ -520,6 +520,15 @@ class FoxgloveView:
         (n x 6), the phantom's positions (n x 3) and its one orientation. None if a row's
         frames would not be the others' (a pose with a non-finite number) or the caller adds
         frames of its own: then each row goes through :meth:`transforms_cdr`."""
+        words = self.block_transforms_words(tool, phantom_xyz, phantom_euler, log_ns)
+        return None if words is None else words[1].messages(words[0])
+
+    def block_transforms_words(self, tool: Any, phantom_xyz: Any,
+                               phantom_euler: Sequence[float],
+                               log_ns: Any) -> tuple[np.ndarray, TfEncoder] | None:
+        """:meth:`block_transforms_cdr`'s messages as the rows of a float64 buffer, with
+        their encoder (its ``size``; ``messages`` cuts them out): each message 4 bytes into
+        its row."""
         tool = np.asarray(tool, dtype=float)
         phantom_xyz = np.asarray(phantom_xyz, dtype=float)
         if self.frames is not None or not (np.isfinite(tool).all()
@@ -542,7 +551,7 @@ class FoxgloveView:
         tooth = enc.word(len(names) - 1)
         buf[:, tooth:tooth + 3] = phantom_xyz * _MM
         buf[:, tooth + 3:tooth + 7] = quat_from_euler_xyz_deg(*phantom_euler)
-        return enc.messages(buf)
+        return buf, enc
 
     def _frames(self, row: dict[str, Any]) -> list[tuple[str, str, Sequence[float], Quat]]:
         """The frames ``row`` places: (parent, child, position in mm, rotation)."""

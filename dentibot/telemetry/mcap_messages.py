@@ -5,7 +5,11 @@ object, six writes into the chunk, the chunk's and the file's statistics): with 
 a ``/tf`` message per tick, more than the rest of the recording put together.
 :func:`add_messages` adds a list of messages to the chunk being built with one packed header
 each, and updates the chunk's message indexes and the file's statistics as ``add_message``
-does: the file is the same, byte for byte.
+does: the file is the same, byte for byte. :func:`add_tick_messages` does the same for the
+messages of many ticks of one shape (a block's ``/tick`` and ``/tf``), their records written
+by compiled code (:mod:`~dentibot.telemetry.record_kernels`). :func:`chunk_piece` cuts the
+records added to the chunk in progress since a given byte of it as an uncompressed chunk of
+their own, which a file holds until the chunk is finished.
 
 It works on the writer's state, which the library does not publish: it is used with the
 version it was written against (:data:`CHECKED_VERSION`, which the project pins), and a test
@@ -15,15 +19,20 @@ without chunks, each message goes through ``add_message``.
 
 from __future__ import annotations
 
+import contextlib
 import struct
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from importlib import metadata
 
+import numpy as np
 from mcap.records import Chunk, ChunkIndex, MessageIndex
 from mcap.writer import CompressionType, IndexType, Writer
 
-__all__ = ["CHECKED_VERSION", "add_messages", "finish_chunk"]
+from dentibot.telemetry.record_kernels import HEAD_SIZE, message_records
+
+__all__ = ["CHECKED_VERSION", "add_messages", "add_tick_messages", "chunk_length",
+           "chunk_piece", "chunks_finished", "finish_chunk"]
 
 #: the mcap version whose writer state :func:`add_messages` updates
 CHECKED_VERSION = "1.6.0"
@@ -89,6 +98,80 @@ def add_messages(writer: Writer, messages: list[tuple[int, int, bytes, int]]) ->
         chunk.message_start_time = lo
     chunk.message_end_time = max(chunk.message_end_time, hi)
     chunk.num_messages += len(messages)
+
+
+def add_tick_messages(writer: Writer, channels: tuple[int, ...],
+                      payloads: tuple[np.ndarray, ...], sizes: tuple[int, ...],
+                      log_ns: list[int], seqs: list[int],
+                      extra: list[tuple[int, bytes]] = (), extra_channel: int = 0) -> None:
+    """:func:`add_messages` of ``n`` ticks' messages: for tick ``i``, one on each of
+    ``channels`` (one or two), its data ``sizes[c]`` bytes of row ``i`` of ``payloads[c]``
+    (uint8, C order) from byte 4 (a :class:`~dentibot.telemetry.cdr.WordBlock`'s rows), at
+    ``log_ns[i]`` (non-decreasing) with sequence ``seqs[i]``; then each of ``extra``'s
+    (tick, data) messages of that tick (in order), on ``extra_channel``. The same file, byte
+    for byte: the records are written by compiled code in one write, the chunk's indexes and
+    the statistics kept as :func:`add_messages` keeps them; or through :func:`add_messages`
+    where that would not be the library's file (another version of the library, a chunk that
+    fills up on the way)."""
+    n = len(log_ns)
+    if n == 0:
+        return
+    chunk = getattr(writer, "_Writer__chunk_builder", None) if FAST else None
+    total = n * sum(HEAD_SIZE + size for size in sizes) + sum(
+        HEAD_SIZE + len(data) for _i, data in extra)
+    if chunk is None or chunk.record_writer._buffer.tell() + total > \
+            writer._Writer__chunk_size:
+        add_messages(writer, _tick_messages(channels, payloads, sizes, log_ns, seqs, extra,
+                                            extra_channel))
+        return
+    buf = chunk.record_writer._buffer
+    out = np.empty(total, dtype=np.uint8)
+    offsets = np.empty((2, n), dtype=np.int64)
+    meta = np.array([sizes[0], channels[0], sizes[-1], channels[-1], len(channels),
+                     extra_channel], dtype=np.int64)
+    rows = [i for i, _data in extra]
+    extra_offsets = np.empty(len(extra), dtype=np.int64)
+    message_records(out, payloads[0], payloads[-1], meta, np.array(log_ns, dtype=np.int64),
+                    np.array(seqs, dtype=np.int64),
+                    np.frombuffer(b"".join(data for _i, data in extra) or b"\0", np.uint8),
+                    np.array(rows, dtype=np.int64),
+                    np.cumsum([0] + [len(data) for _i, data in extra], dtype=np.int64),
+                    offsets, extra_offsets)
+    at = buf.tell()
+    buf.write(out)
+    stats = writer._Writer__statistics
+    counts, indexes = stats.channel_message_counts, chunk.message_indices
+    entries = [(channel, log_ns, offsets[c]) for c, channel in enumerate(channels)]
+    if extra:
+        entries.append((extra_channel, [log_ns[i] for i in rows], extra_offsets))
+    for channel, times, starts in entries:
+        index = indexes.get(channel)
+        if not index:
+            index = indexes[channel] = MessageIndex(channel_id=channel, records=[])
+        index.records += zip(times, (starts + at).tolist())
+        counts[channel] += len(times)
+    lo, hi = log_ns[0], log_ns[-1]
+    count = n * len(channels) + len(extra)
+    if stats.message_count == 0 or lo < stats.message_start_time:
+        stats.message_start_time = lo
+    stats.message_end_time = max(stats.message_end_time, hi)
+    stats.message_count += count
+    if chunk.num_messages == 0 or lo < chunk.message_start_time:
+        chunk.message_start_time = lo
+    chunk.message_end_time = max(chunk.message_end_time, hi)
+    chunk.num_messages += count
+
+
+def _tick_messages(channels, payloads, sizes, log_ns, seqs, extra, extra_channel) -> list:
+    """:func:`add_tick_messages`'s messages as :func:`add_messages` takes them."""
+    out, j = [], 0
+    for i, (t, seq) in enumerate(zip(log_ns, seqs)):
+        out += [(ch, t, bytes(p[i, 4:4 + size]), seq)
+                for ch, p, size in zip(channels, payloads, sizes)]
+        while j < len(extra) and extra[j][0] == i:
+            out.append((extra_channel, t, extra[j][1], seq))
+            j += 1
+    return out
 
 
 def _one_by_one(writer: Writer, chunk, stats, size: int,
@@ -172,3 +255,51 @@ def finish_chunk(writer: Writer, compress: Callable[[bytes], bytes] | None = Non
         chunk.reset()
     writer._Writer__flush()
     stream.flush()
+
+
+#: an uncompressed Chunk record's bytes before its records: opcode, length, message start and
+#: end time, uncompressed size, CRC, the compression's name (empty: its length 0), the records'
+#: length
+_PIECE_HEAD = struct.Struct("<BQQQQIIQ")
+_OPCODE_CHUNK = 0x06
+
+
+def chunks_finished(writer: Writer) -> int:
+    """Chunks the writer has finished so far (its statistics' count)."""
+    return writer._Writer__statistics.chunk_count
+
+
+def chunk_length(writer: Writer) -> int:
+    """Bytes in the chunk in progress; -1 where :func:`chunk_piece` cannot cut pieces of it
+    (another version of the library, a writer without chunks)."""
+    chunk = getattr(writer, "_Writer__chunk_builder", None) if FAST else None
+    return -1 if chunk is None else chunk.record_writer._buffer.tell()
+
+
+@contextlib.contextmanager
+def chunk_piece(writer: Writer, start: int) -> Iterator[list]:
+    """The records added to the chunk in progress from its byte ``start`` on, as an
+    uncompressed Chunk record of their own with their own message times (buffers to write
+    one after the other, valid within the ``with``; empty if none was added). A file may hold
+    such pieces where the chunk will go until it is finished: each is a valid chunk to a
+    reader (the recorder's flushes between two finished chunks; the finished chunk is
+    written over them, so a piece has no CRC: 0, "not computed"). Needs
+    :func:`chunk_length` >= 0."""
+    chunk = writer._Writer__chunk_builder
+    buf = chunk.record_writer._buffer
+    end = buf.tell()
+    if end <= start:
+        yield []
+        return
+    lo = hi = None
+    for index in chunk.message_indices.values():   # each in the order of its offsets
+        for log_ns, at in reversed(index.records):
+            if at < start:
+                break
+            lo = log_ns if lo is None or log_ns < lo else lo
+            hi = log_ns if hi is None or log_ns > hi else hi
+    size = end - start
+    head = _PIECE_HEAD.pack(_OPCODE_CHUNK, _PIECE_HEAD.size - 9 + size, lo or 0, hi or 0,
+                            size, 0, 0, size)
+    with buf.getbuffer() as whole, whole[start:end] as records:
+        yield [head, records]                      # released before the buffer grows again

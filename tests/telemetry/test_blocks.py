@@ -129,17 +129,20 @@ def _ticks_of(data: bytes) -> list[dict]:
             make_reader(io.BytesIO(data)).iter_messages() if c.topic == "/tick"]
 
 
-@pytest.mark.parametrize("chunk_size", [1 << 20, 2000])
-def test_the_recorder_writes_a_block_as_its_rows(chunk_size):
+@pytest.mark.parametrize(("chunk_size", "view"), [(1 << 20, True), (2000, True),
+                                                   (1 << 20, False), (30_000, True)])
+def test_the_recorder_writes_a_block_as_its_rows(chunk_size, view):
     """The same /tick, /tf and /scene messages as record() of each row, byte for byte; a block
     larger than the budget goes in parts, and never more than the budget is at risk; also
     where a block's messages fill 2 kB chunks on the way (a flush then finds its chunk
-    empty)."""
+    empty), without the 3D view, and with chunks that flushes finish on the way (half of
+    30 kB)."""
     blocks = [_block(0, 25), _block(25, 140, 1), _block(165, 3, 2)]
     files = []
     for whole in (True, False):
         stream = io.BytesIO()
-        rec = McapRecorder(stream, {**META, "start_wall_ns": 10**18}, chunk_size=chunk_size)
+        rec = McapRecorder(stream, {**META, "start_wall_ns": 10**18}, chunk_size=chunk_size,
+                           view=view)
         for b in blocks:
             if whole:
                 rec.record_block(b)
@@ -148,8 +151,8 @@ def test_the_recorder_writes_a_block_as_its_rows(chunk_size):
                     rec.record(row)
         assert rec.at_risk_max <= rec.budget == 50
         rec.close("ok")
-        assert rec.ticks_written == 168 and rec.transforms_written == 168
-        assert rec.scenes_written == 17                 # 50 Hz of 0.336 s: ticks 0, 10, ...
+        assert rec.ticks_written == 168 and rec.transforms_written == 168 * view
+        assert rec.scenes_written == 17 * view          # 50 Hz of 0.336 s: ticks 0, 10, ...
         files.append(stream.getvalue())
     assert _ticks_of(files[0]) == _ticks_of(files[1])
     assert [r["tick"] for r in _ticks_of(files[0])] == list(range(168))

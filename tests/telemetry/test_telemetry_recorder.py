@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import io
 import json
 import math
 import shutil
@@ -12,14 +13,16 @@ import time
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from mcap.records import Chunk
+from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 from telemetry_helpers import GatedStream, decoded_messages, ramp_row
 
 from dentibot.errors import ConfigError
 from dentibot.telemetry import McapRecorder, TelemetryError, json_schema, read_recording
-from dentibot.telemetry.cdr import definition
+from dentibot.telemetry.cdr import TICK_CODEC, definition
 from dentibot.telemetry.foxglove import FOXGLOVE_TOPICS
-from dentibot.telemetry.recorder import TelemetryOverflow
+from dentibot.telemetry.recorder import PROVISIONAL_END, TelemetryOverflow
 from dentibot.telemetry.schema import TICK_FIELDS
 from dentibot.telemetry.tf_cdr import TF_DEFINITION, TF_SCHEMA_NAME
 
@@ -274,6 +277,41 @@ def test_everything_up_to_the_last_flush_is_readable_from_an_open_recording(tmp_
     finally:
         rec.close("ok")
     assert read_recording(path).complete
+
+
+def test_flushes_write_pieces_of_the_chunk_which_the_finished_chunk_replaces(tmp_path):
+    """Between two finished chunks each flush writes the chunk's new records as an
+    uncompressed chunk of their own after the data, then the provisional end; the finished
+    chunk (compressed, once it holds half of chunk_size) is written over the pieces and the
+    file cut after its new end. After every flush a copy of the file is a valid MCAP file
+    with exactly the flushed rows, and the finished file holds compressed chunks only."""
+    path = tmp_path / "run.mcap"
+    rows = [ramp_row(i) for i in range(600)]
+    rec = McapRecorder(path, META, chunk_size=120_000, writer_thread=False)
+    seen, pieces_seen, finished_seen = 0, 0, 0
+    for row in rows:
+        rec.record(row)
+        if rec.flushes == seen:
+            continue
+        seen = rec.flushes
+        raw = path.read_bytes()
+        assert raw.endswith(PROVISIONAL_END) and len(raw) == rec.bytes_flushed + len(
+            PROVISIONAL_END)
+        kinds = [c.compression for c in StreamReader(io.BytesIO(raw), emit_chunks=True).records
+                 if isinstance(c, Chunk)]
+        assert kinds == sorted(kinds, key=lambda k: k == "")     # pieces after the chunks
+        pieces_seen = max(pieces_seen, kinds.count(""))
+        finished_seen = max(finished_seen, kinds.count("zstd"))
+        ticks = [TICK_CODEC.decode(m.data)["tick"] for _s, c, m in
+                 make_reader(io.BytesIO(raw)).iter_messages() if c.topic == "/tick"]
+        assert ticks == list(range(rec.rows_flushed))
+    assert pieces_seen >= 2 and finished_seen >= 2 and rec.flushes >= 20
+    rec.close("ok")
+    raw = path.read_bytes()
+    kinds = {c.compression for c in StreamReader(io.BytesIO(raw), emit_chunks=True).records
+             if isinstance(c, Chunk)}
+    assert kinds == {"zstd"}
+    assert read_recording(path).rows == rows
 
 
 def test_nan_becomes_null_numpy_is_accepted_bad_rows_are_counted(tmp_path):

@@ -33,10 +33,11 @@ N_ROWS = 400
 @functools.cache
 def _finished() -> tuple[bytes, list[tuple[int, int, int]]]:
     """A finished recording and, per chunk in file order: (end offset, messages, /tick
-    messages) in the chunks up to and including it."""
+    messages) in the chunks up to and including it. Its chunks are small (a flush finishes
+    the chunk once it holds 20 kB), so that it has many."""
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / "run.mcap"
-        with McapRecorder(path, {"rate_hz": RATE_HZ}) as rec:
+        with McapRecorder(path, {"rate_hz": RATE_HZ}, chunk_size=40_000) as rec:
             for i in range(N_ROWS):
                 rec.record(real_row(i))
                 if i % 100 == 50:
