@@ -353,6 +353,8 @@ class _Sink:
             views = [memoryview(p).cast("B") for p in parts]
             while views:
                 n = os.pwritev(self._fd, views, at)
+                if n == 0 and any(len(v) for v in views):
+                    raise OSError(f"no progress writing {sum(map(len, views))} bytes at {at}")
                 at += n
                 while views and n >= len(views[0]):
                     n -= len(views[0])
