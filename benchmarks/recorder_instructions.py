@@ -52,8 +52,8 @@ WARM_PARTS = 40               # parts written before the counted ones (in both r
 FIRST_BLOCK = 20              # the drill step's blocks from here on (its start skipped)
 PART_TICKS = 25               # a block as the recorder's process receives it (half a budget)
 #: where a C function's instructions are counted: the first pattern its name matches
-AREAS = (("interpreter", r"ceval\.c|dictobject|obmalloc|object\.c|typeobject|longobject|"
-                         r"listobject|tupleobject|frame\.c|unicodeobject|abstract\.c|call\.c"),
+AREAS = (("interpreter", (r"ceval\.c|dictobject|obmalloc|object\.c|typeobject|longobject|"
+                          r"listobject|tupleobject|frame\.c|unicodeobject|abstract\.c|call\.c")),
          ("zstd", r"zstd"), ("crc", r"crc32"), ("memory copies", r"memmove|memcpy|memset"),
          ("numpy", r"numpy|PyArray|ufunc|npy"))
 
@@ -78,8 +78,7 @@ def capture_blocks(path: Path) -> int:
     finally:
         ProtocolRunner._block_read = keep
     with open(path, "wb") as f:
-        for b in blocks:
-            f.write(len(b).to_bytes(8, "little") + b)
+        f.writelines(len(b).to_bytes(8, "little") + b for b in blocks)
     return len(blocks)
 
 
@@ -105,8 +104,8 @@ def write_parts(path: Path, blocks: int, counted: bool, out: Path) -> int:
     rec = McapRecorder(out, {"rate_hz": 500.0}, writer_thread=False, validate=False,
                        view=FoxgloveView(file_length_mm=25.0), overwrite=True)
     for p in todo:
-        if rec.rows_queued - rec._settled + len(p) > rec.budget:  # noqa: SLF001 - as the
-            rec._wait_for_room(None, len(p))   # noqa: SLF001 - process's record_block waits
+        if rec.rows_queued - rec._settled + len(p) > rec.budget:   # as the recorder's
+            rec._wait_for_room(None, len(p))      # process waits for room before a block
         rec.record_block(p)
     rec.close("ok")
     return sum(len(p) for p in parts[WARM_PARTS:])
