@@ -29,18 +29,19 @@ import numpy as np
 from mcap.records import Chunk, ChunkIndex, MessageIndex
 from mcap.writer import CompressionType, IndexType, Writer
 
-from dentibot.telemetry.record_kernels import HEAD_SIZE, message_records
+from dentibot.telemetry.record_kernels import (
+    HEAD,
+    HEAD_FIELDS,
+    HEAD_SIZE,
+    OPCODE_MESSAGE,
+    message_records,
+)
 
 __all__ = ["CHECKED_VERSION", "add_messages", "add_tick_messages", "chunk_length",
            "chunk_piece", "chunks_finished", "finish_chunk"]
 
 #: the mcap version whose writer state :func:`add_messages` updates
 CHECKED_VERSION = "1.6.0"
-#: a Message record's opcode, its length (u64), then channel id (u16), sequence (u32), log
-#: time and publish time (u64), little-endian (the MCAP specification's Message record)
-_OPCODE_MESSAGE = 0x05
-_HEAD = struct.Struct("<BQHIQQ")
-_FIELDS = _HEAD.size - 9                   # the record's length counts what follows it
 
 
 def _fast() -> bool:
@@ -53,10 +54,37 @@ def _fast() -> bool:
 FAST = _fast()
 
 
+def _chunk_builder(writer: Writer):
+    """The writer's chunk in progress, where this module may work on it (the checked
+    version, a writer with chunks); else None."""
+    return getattr(writer, "_Writer__chunk_builder", None) if FAST else None
+
+
+def _index(chunk, channel: int) -> list:
+    """The chunk's message index entries of ``channel`` (made when it has none yet)."""
+    index = chunk.message_indices.get(channel)
+    if not index:
+        index = chunk.message_indices[channel] = MessageIndex(channel_id=channel, records=[])
+    return index.records
+
+
+def _counted(stats, chunk, lo: int, hi: int, count: int) -> None:
+    """``count`` more messages logged from ``lo`` to ``hi`` (ns) in the file's statistics and
+    the chunk's times, as ``add_message`` keeps them."""
+    if stats.message_count == 0 or lo < stats.message_start_time:
+        stats.message_start_time = lo
+    stats.message_end_time = max(stats.message_end_time, hi)
+    stats.message_count += count
+    if chunk.num_messages == 0 or lo < chunk.message_start_time:
+        chunk.message_start_time = lo
+    chunk.message_end_time = max(chunk.message_end_time, hi)
+    chunk.num_messages += count
+
+
 def add_messages(writer: Writer, messages: list[tuple[int, int, bytes, int]]) -> None:
     """Add ``messages`` (channel id, log time = publish time in ns, data, sequence), in
     order: the same file as ``writer.add_message`` of each."""
-    chunk = getattr(writer, "_Writer__chunk_builder", None) if FAST else None
+    chunk = _chunk_builder(writer)
     if chunk is None:
         for channel, log_ns, data, seq in messages:
             writer.add_message(channel, log_ns, data, log_ns, sequence=seq)
@@ -67,37 +95,25 @@ def add_messages(writer: Writer, messages: list[tuple[int, int, bytes, int]]) ->
     pos = buf.tell()
     if not messages:
         return
-    if pos + sum(len(m[2]) for m in messages) + _HEAD.size * len(messages) > size:
+    if pos + sum(len(m[2]) for m in messages) + HEAD_SIZE * len(messages) > size:
         _one_by_one(writer, chunk, stats, size, messages)
         return
     counts = stats.channel_message_counts
-    indexes = chunk.message_indices
-    pack = _HEAD.pack
+    pack = HEAD.pack
     parts: list[bytes] = []
     entries: dict[int, list] = {}
     for channel, log_ns, data, seq in messages:
         records = entries.get(channel)
         if records is None:
-            index = indexes.get(channel)
-            if not index:
-                index = indexes[channel] = MessageIndex(channel_id=channel, records=[])
-            records = entries[channel] = index.records
+            records = entries[channel] = _index(chunk, channel)
         records.append((log_ns, pos))
         counts[channel] += 1
-        parts.append(pack(_OPCODE_MESSAGE, _FIELDS + len(data), channel, seq, log_ns, log_ns))
+        parts.append(pack(OPCODE_MESSAGE, HEAD_FIELDS + len(data), channel, seq, log_ns, log_ns))
         parts.append(data)
-        pos += _HEAD.size + len(data)
+        pos += HEAD_SIZE + len(data)
     buf.write(b"".join(parts))
     times = [m[1] for m in messages]
-    lo, hi = min(times), max(times)
-    if stats.message_count == 0 or lo < stats.message_start_time:
-        stats.message_start_time = lo
-    stats.message_end_time = max(stats.message_end_time, hi)
-    stats.message_count += len(messages)
-    if chunk.num_messages == 0 or lo < chunk.message_start_time:
-        chunk.message_start_time = lo
-    chunk.message_end_time = max(chunk.message_end_time, hi)
-    chunk.num_messages += len(messages)
+    _counted(stats, chunk, min(times), max(times), len(messages))
 
 
 def add_tick_messages(writer: Writer, channels: tuple[int, ...],
@@ -116,7 +132,7 @@ def add_tick_messages(writer: Writer, channels: tuple[int, ...],
     n = len(log_ns)
     if n == 0:
         return
-    chunk = getattr(writer, "_Writer__chunk_builder", None) if FAST else None
+    chunk = _chunk_builder(writer)
     total = n * sum(HEAD_SIZE + size for size in sizes) + sum(
         HEAD_SIZE + len(data) for _i, data in extra)
     if chunk is None or chunk.record_writer._buffer.tell() + total > \
@@ -140,26 +156,14 @@ def add_tick_messages(writer: Writer, channels: tuple[int, ...],
     at = buf.tell()
     buf.write(out)
     stats = writer._Writer__statistics
-    counts, indexes = stats.channel_message_counts, chunk.message_indices
+    counts = stats.channel_message_counts
     entries = [(channel, log_ns, offsets[c]) for c, channel in enumerate(channels)]
     if extra:
         entries.append((extra_channel, [log_ns[i] for i in rows], extra_offsets))
     for channel, times, starts in entries:
-        index = indexes.get(channel)
-        if not index:
-            index = indexes[channel] = MessageIndex(channel_id=channel, records=[])
-        index.records += zip(times, (starts + at).tolist())
+        _index(chunk, channel).extend(zip(times, (starts + at).tolist()))
         counts[channel] += len(times)
-    lo, hi = log_ns[0], log_ns[-1]
-    count = n * len(channels) + len(extra)
-    if stats.message_count == 0 or lo < stats.message_start_time:
-        stats.message_start_time = lo
-    stats.message_end_time = max(stats.message_end_time, hi)
-    stats.message_count += count
-    if chunk.num_messages == 0 or lo < chunk.message_start_time:
-        chunk.message_start_time = lo
-    chunk.message_end_time = max(chunk.message_end_time, hi)
-    chunk.num_messages += count
+    _counted(stats, chunk, log_ns[0], log_ns[-1], n * len(channels) + len(extra))
 
 
 def _tick_messages(channels, payloads, sizes, log_ns, seqs, extra, extra_channel) -> list:
@@ -179,24 +183,13 @@ def _one_by_one(writer: Writer, chunk, stats, size: int,
     """:func:`add_messages` where the chunk fills up on the way: as ``add_message``, the
     chunk is finished after the message that takes it past the writer's chunk size."""
     counts = stats.channel_message_counts
-    indexes = chunk.message_indices
-    pack = _HEAD.pack
+    pack = HEAD.pack
     buf = chunk.record_writer._buffer
     for channel, log_ns, data, seq in messages:
-        if stats.message_count == 0 or log_ns < stats.message_start_time:
-            stats.message_start_time = log_ns
-        stats.message_end_time = max(stats.message_end_time, log_ns)
         counts[channel] += 1
-        stats.message_count += 1
-        if chunk.num_messages == 0 or log_ns < chunk.message_start_time:
-            chunk.message_start_time = log_ns
-        chunk.message_end_time = max(chunk.message_end_time, log_ns)
-        index = indexes.get(channel)
-        if not index:
-            index = indexes[channel] = MessageIndex(channel_id=channel, records=[])
-        index.records.append((log_ns, buf.tell()))
-        chunk.num_messages += 1
-        buf.write(pack(_OPCODE_MESSAGE, _FIELDS + len(data), channel, seq, log_ns, log_ns))
+        _counted(stats, chunk, log_ns, log_ns, 1)
+        _index(chunk, channel).append((log_ns, buf.tell()))
+        buf.write(pack(OPCODE_MESSAGE, HEAD_FIELDS + len(data), channel, seq, log_ns, log_ns))
         buf.write(data)
         if buf.tell() > size:                     # as add_message: the chunk is full
             writer._Writer__maybe_finalize_chunk()
@@ -213,7 +206,7 @@ def finish_chunk(writer: Writer, compress: Callable[[bytes], bytes] | None = Non
     indexes packed in one call each (the library writes them number by number). With
     ``compress`` None, or another version of the library, this is ``writer.flush()``. For
     the same compression the file is the library's, byte for byte."""
-    chunk = getattr(writer, "_Writer__chunk_builder", None) if FAST else None
+    chunk = _chunk_builder(writer)
     if (chunk is None or compress is None
             or writer._Writer__compression != CompressionType.ZSTD):
         writer.flush()
@@ -272,7 +265,7 @@ def chunks_finished(writer: Writer) -> int:
 def chunk_length(writer: Writer) -> int:
     """Bytes in the chunk in progress; -1 where :func:`chunk_piece` cannot cut pieces of it
     (another version of the library, a writer without chunks)."""
-    chunk = getattr(writer, "_Writer__chunk_builder", None) if FAST else None
+    chunk = _chunk_builder(writer)
     return -1 if chunk is None else chunk.record_writer._buffer.tell()
 
 

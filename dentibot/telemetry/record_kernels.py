@@ -12,14 +12,20 @@ starts, so that one write puts them all in the chunk
 
 from __future__ import annotations
 
+import struct
+
 from numba import njit
 
-__all__ = ["HEAD_SIZE", "META_SIZE", "message_records"]
+__all__ = ["HEAD", "HEAD_FIELDS", "HEAD_SIZE", "META_SIZE", "OPCODE_MESSAGE",
+           "message_records"]
 
+#: a Message record's opcode, its length (u64), then channel id (u16), sequence (u32), log
+#: time and publish time (u64), little-endian (the MCAP specification's Message record)
+OPCODE_MESSAGE = 0x05
+HEAD = struct.Struct("<BQHIQQ")
 #: a Message record's bytes before its data
-HEAD_SIZE = 31
-_OPCODE_MESSAGE = 0x05
-_FIELDS = HEAD_SIZE - 9                     # the record's length counts what follows it
+HEAD_SIZE = HEAD.size
+HEAD_FIELDS = HEAD_SIZE - 9                 # the record's length counts what follows it
 #: ``meta``'s cells: each of the two row channels' data size and channel id, how many of the
 #: two the ticks have (1 or 2), the channel id of the other messages
 (SIZE0, CHANNEL0, SIZE1, CHANNEL1, ROW_CHANNELS, EXTRA_CHANNEL) = range(6)
@@ -36,8 +42,8 @@ def _le(dst, at, value, width) -> None:
 def _record(out, pos, channel, seq, t, src, start, size) -> int:
     """One record at ``pos``, its data ``src[start:start + size]``; the position after it."""
     head = out[pos:pos + HEAD_SIZE]               # views indexed from 0 compile to plain
-    head[0] = _OPCODE_MESSAGE                     # stores (an offset index costs 20x)
-    _le(head, 1, _FIELDS + size, 8)
+    head[0] = OPCODE_MESSAGE                      # stores (an offset index costs 20x)
+    _le(head, 1, HEAD_FIELDS + size, 8)
     _le(head, 9, channel, 2)
     _le(head, 11, seq, 4)
     _le(head, 15, t, 8)
@@ -76,3 +82,4 @@ def message_records(out, rows0, rows1, meta, log_ns, seqs, extra, extra_row, ext
                           extra_at[j + 1] - extra_at[j])
             j += 1
     return pos
+

@@ -1019,7 +1019,7 @@ class McapRecorder(RecorderBase):
                   + wall0).tolist()
         ticks, tick_enc = block.tick_words()
         channels, payloads, sizes = [channel], [ticks.view(np.uint8)], [tick_enc.size]
-        view = self.view
+        view, tfs = self.view, None
         if view is not None:
             tool, ph = COL["tool_pose"], COL["phantom_xyz"]
             try:
@@ -1032,8 +1032,6 @@ class McapRecorder(RecorderBase):
                 channels.append(self._channels[TF_TOPIC])
                 payloads.append(tfs[0].view(np.uint8))
                 sizes.append(tfs[1].size)
-        else:
-            tfs = None
         nonfinite = n - int(np.isfinite(block.cols).all(axis=1).sum())
         seqs = [k & 0xFFFFFFFF for k in range(k0, k0 + n)]
         j = 0
@@ -1122,8 +1120,9 @@ class McapRecorder(RecorderBase):
         over); before that, the records added since the last flush as an uncompressed chunk
         of their own (:func:`~dentibot.telemetry.mcap_messages.chunk_piece`), which the
         finished chunk is written over. Either way a file cut short there reads back whole
-        up to this flush. A flush costs the bytes it writes and little more: finishing a
-        chunk of 25 ticks (at 500 Hz, half the budget) cost as much as writing them."""
+        up to this flush. Finishing a chunk at every flush (25 ticks at 500 Hz, half the
+        budget) compressed small chunks, less well and at more cost per byte, and gave a
+        recording thousands of chunks to index."""
         if self._batch:
             self._add_batch()
         writer, sink = self._writer, self._sink
