@@ -8,16 +8,21 @@ publish time (u64), little-endian, then the data), tick by tick, with the few me
 other lengths that follow some ticks (``/scene``), into one byte array, and where each record
 starts, so that one write puts them all in the chunk
 (:func:`~dentibot.telemetry.mcap_messages.add_tick_messages`).
+
+The kernel is compiled (or loaded from numba's cache) when the module is imported
+(:func:`warm_up`): the recorder's process imports it before it forks, and its first block
+must not wait for a compilation (the producer waits for room at most ``max_wait_s``).
 """
 
 from __future__ import annotations
 
 import struct
 
+import numpy as np
 from numba import njit
 
 __all__ = ["HEAD", "HEAD_FIELDS", "HEAD_SIZE", "META_SIZE", "OPCODE_MESSAGE",
-           "message_records"]
+           "message_records", "warm_up"]
 
 #: a Message record's opcode, its length (u64), then channel id (u16), sequence (u32), log
 #: time and publish time (u64), little-endian (the MCAP specification's Message record)
@@ -83,3 +88,17 @@ def message_records(out, rows0, rows1, meta, log_ns, seqs, extra, extra_row, ext
             j += 1
     return pos
 
+
+def warm_up() -> None:
+    """Compile (or load) the kernel for the types
+    :func:`~dentibot.telemetry.mcap_messages.add_tick_messages` calls it with (the rows:
+    slices of a buffer's bytes; the other messages' bytes read-only, from ``frombuffer``)."""
+    rows = np.zeros((2, 16), dtype=np.float64).view(np.uint8)[0:1]
+    meta = np.array([8, 1, 8, 2, 2, 3], dtype=np.int64)
+    one = np.zeros(1, dtype=np.int64)
+    message_records(np.empty(3 * HEAD_SIZE + 17, dtype=np.uint8), rows, rows, meta, one, one,
+                    np.frombuffer(b"\0", np.uint8), one, np.array([0, 1], dtype=np.int64),
+                    np.empty((2, 1), dtype=np.int64), np.empty(1, dtype=np.int64))
+
+
+warm_up()

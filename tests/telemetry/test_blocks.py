@@ -16,7 +16,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from telemetry_helpers import GatedStream
 
-from dentibot.telemetry import McapRecorder, mcap_messages
+from dentibot.telemetry import McapRecorder, mcap_messages, record_kernels
 from dentibot.telemetry.blocks import COL, COLUMNS, WIDTH, TickBlock, tick_row
 from dentibot.telemetry.cdr import TICK_CODEC
 from dentibot.telemetry.recorder import ZSTD_LEVEL, TelemetryOverflow
@@ -157,6 +157,20 @@ def test_the_recorder_writes_a_block_as_its_rows(chunk_size, view):
     assert _ticks_of(files[0]) == _ticks_of(files[1])
     assert [r["tick"] for r in _ticks_of(files[0])] == list(range(168))
     assert files[0] == files[1]                         # byte for byte
+
+
+def test_the_record_kernel_is_ready_at_import_and_blocks_compile_nothing_more():
+    """The recorder's process imports the kernel before it forks: its first block must not
+    wait for a compilation (the producer waits for room at most max_wait_s)."""
+    before = list(record_kernels.message_records.signatures)
+    assert len(before) == 1
+    for view in (True, False):
+        rec = McapRecorder(io.BytesIO(), META, view=view)
+        for k0 in range(0, 100, 25):
+            rec.record_block(_block(k0, 25, k0))
+        rec.close("ok")
+        assert rec.ticks_written == 100 and rec.scenes_written == 10 * view
+    assert list(record_kernels.message_records.signatures) == before
 
 
 def test_a_block_that_finds_no_room_is_dropped_loudly():
