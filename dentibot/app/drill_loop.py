@@ -33,10 +33,11 @@ pre-clinical experiment's trace).
 Where rows are read, ``on_block(block)`` (``Runtime.on_block``) replaces the ``sink`` for the
 ticks run here: each call's rows as one :class:`~dentibot.telemetry.blocks.TickBlock`, their
 numbers written by the compiled ticks, their compute time the call's shared out. With
-``block_ticks`` below :data:`CHUNK` (the runner gives half a recorder's budget of ticks at
-risk, as its writer flushes), the rows leave in blocks of at most ``block_ticks`` ticks:
+``block_ticks`` below :data:`CHUNK` (the runner gives half a recorder's budget of ticks not
+yet in its file, as its writer flushes: 25 for a budget of 50), the rows leave in blocks of
+at most ``block_ticks`` ticks:
 
-- to a recorder process that offers its pipe (``rt.block_wire``, a
+- to a recorder process that offers its journal (``rt.block_wire``, a
   :class:`~dentibot.telemetry.recorder_process.Wire`), the compiled ticks send each block
   themselves as they finish it (:mod:`~dentibot.app.relay_kernels`), in calls of up to
   :data:`CHUNK` ticks; the ticks after the call's last block go to it after the call, and

@@ -1,12 +1,14 @@
 """A compiled call's blocks of ticks sent to the recorder as the call computes them.
 
-A recorder must never hold more than its budget of ticks at risk (what a crash could lose),
-so the rows of the compiled drilling ticks must leave every half budget (25 ticks at
-500 Hz). Calls of 25 ticks each cost about 300 us of Python around the kernel (its
-arguments, the Python side brought up to date, the world between calls), which doubled the
-cost of a recorded tick. Instead a call runs up to 256 ticks without the interpreter lock
+A recorder holds at most its budget of ticks not yet in its file, so the rows of the compiled
+drilling ticks must leave every half budget: 25 ticks for a budget of 50 (the in-process
+recorder's at 500 Hz, or a recorder process given ``max_queue=50``; the recorder process's
+own, 2,000 ticks, takes whole 256-tick calls). Calls of 25 ticks each cost about 300 us of
+Python around the kernel (its arguments, the Python side brought up to date, the world
+between calls), which doubled the cost of a recorded tick. Instead a call runs up to 256 ticks
+without the interpreter lock
 and sends each group of ``every`` ticks to the recorder's process itself, through the
-recorder's pipe (:func:`~dentibot.telemetry.wire_kernels.send_block`: the bytes, the budget
+recorder's journal (:func:`~dentibot.telemetry.wire_kernels.send_block`: the bytes, the budget
 and the waits for room of ``record_block``), as it finishes the group: :func:`begin`, then
 :func:`hold` before each tick, :func:`publish` after it, :func:`end`.
 
@@ -24,6 +26,7 @@ import numpy as np
 from numba import njit
 
 from dentibot.telemetry.fd_kernels import now_ns
+from dentibot.telemetry.journal import HEADER_CELLS
 from dentibot.telemetry.wire_kernels import OK, ST_SIZE, STATUS, send_block
 
 __all__ = ["ABORT", "CTL_SIZE", "OFF", "PUB", "TAIL_NS", "begin", "end", "hold", "publish",
@@ -48,8 +51,8 @@ def wire_args(every: int, ctl: np.ndarray, wire: tuple, rows: np.ndarray, comput
 
 #: the tuple of a call that sends nothing (the same types: no other compilation)
 OFF = (False, 1, np.zeros(CTL_SIZE, dtype=np.int64),
-       (np.zeros(ST_SIZE, dtype=np.int64), np.zeros(1, dtype=np.uint8), 0, 0, 0,
-        np.zeros(1, dtype=np.uint8), np.zeros(1, dtype=np.uint8)),
+       (np.zeros(ST_SIZE, dtype=np.int64), np.zeros(HEADER_CELLS, dtype=np.int64),
+        np.zeros(1, dtype=np.uint8), np.zeros(1, dtype=np.uint8), 0, 0, 0),
        np.zeros((1, 8), dtype=np.uint8), np.zeros((1, 1)), 0, 0)
 
 
@@ -75,14 +78,14 @@ def publish(relay, i) -> None:
     on, every, ctl = relay[0], relay[1], relay[2]
     if not on or (i + 1) % every != 0:
         return
-    (st, msg, head_size, k0_at, n_at, incoming, flush), rows_u8, rows, col, k0 = relay[3:]
+    (st, hdr, ring, msg, head_size, k0_at, n_at), rows_u8, rows, col, k0 = relay[3:]
     busy_ns = ctl[BUSY_NS] + now_ns() - ctl[STRETCH_T0]
     start = i + 1 - every
     us = busy_ns / every / 1000.0
     for r in range(start, i + 1):
         rows[r, col] = us
-    if send_block(st, msg, head_size, k0_at, n_at, rows_u8, start, i + 1, k0 + start,
-                  incoming, flush):
+    if send_block(st, hdr, ring, msg, head_size, k0_at, n_at, rows_u8, start, i + 1,
+                  k0 + start):
         ctl[PUB] = i + 1
     if st[STATUS] != OK:
         ctl[ABORT] = 1

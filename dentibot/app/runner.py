@@ -278,8 +278,7 @@ class ProtocolRunner:
         if recorder is not None:
             recorder.record_block(block)
         if self.live is not None:
-            for row in block.rows():
-                self.live.record(row)
+            self.live.record_block(block)
         if self.progress is not None:
             every, k0 = self.progress_every, block.k0
             for k in range(k0 + -k0 % every, k0 + len(block), every):
@@ -383,7 +382,7 @@ class ProtocolRunner:
                                      every=getattr(self._on_tick, "every", None))
         elif self._on_tick is None and self._tap is None and compiled:
             # drilling ticks compiled, their rows handed over in blocks; a recorder's block
-            # is half its budget of ticks at risk, as its writer flushes
+            # is at most half its budget of ticks not yet in its file, as its writer flushes
             rt.on_block = self._block
             rt.fused = DrillLoop(proc.world, proc.gate, proc.clock, block_ticks=(
                 self.recorder.budget // 2 if self.recorder is not None else CHUNK))

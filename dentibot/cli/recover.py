@@ -38,6 +38,8 @@ def cmd_recover(args: argparse.Namespace) -> int:
           f"messages in all, from {r.source} into {r.out}")
     end = ("it has a /run/end but its file was not finished" if r.has_end else
            "no /run/end: the run did not close its recording, what came after is lost")
+    if r.journal:
+        print(f"journal {r.journal}")
     print(f"the recording is INCOMPLETE: {end}; {r.stopped}")
     for problem in r.skipped[:5]:
         print(f"skipped: {problem}")

@@ -14,7 +14,8 @@ must never slow the control task or stop a run:
   publisher thread encodes and hands the messages to the server. If the publisher falls
   behind (a lock-step run, many times faster than real time, with a viewer subscribed), the
   oldest items are dropped and counted (``items_dropped``): a live view shows the present.
-- Nothing is encoded for a channel no viewer subscribes to.
+- Nothing is encoded for a channel no viewer subscribes to, and rows no viewer watches (on
+  ``/tick``, ``/tf`` or ``/scene``) are not even queued.
 - A publisher that fails is logged and counted, never raised into the control task;
   :attr:`LiveView.error` tells why.
 
@@ -47,6 +48,7 @@ from dentibot.telemetry.foxglove import (
     FoxgloveView,
     as_view,
 )
+from dentibot.telemetry.blocks import TickBlock
 from dentibot.telemetry.recorder import (
     _dentibot_version,
     _finite,
@@ -65,6 +67,8 @@ log = structlog.get_logger("dentibot.telemetry")
 DEFAULT_PORT = 8765          # Foxglove's default WebSocket port
 _SLICE_S = 0.001             # longest stretch the publisher keeps the interpreter lock
 _ORJSON_OPTIONS = orjson.OPT_SERIALIZE_NUMPY
+#: the topics a row is sent on
+_ROW_TOPICS = ("/tick", TF_TOPIC, SCENE_TOPIC)
 
 
 class _Listener:
@@ -195,11 +199,14 @@ class LiveView:
 
     def record(self, row: dict[str, Any]) -> None:
         """Queue one tick row (the row is encoded later: do not mutate it). Returns at once;
-        after :meth:`close`, or if the publisher stopped, the row is only counted as dropped."""
+        after :meth:`close`, or if the publisher stopped, the row is only counted as dropped;
+        when no viewer watches the rows' topics, only counted as queued (nothing of it would
+        be sent, and a lock-step run hands rows over faster than the publisher takes them)."""
         if self._closed or self._error is not None:
             self.items_dropped += 1
             return
-        self._put(("tick", row))
+        if self._watched():
+            self._put(("tick", row))
         self.rows_queued += 1
         t = row.get("t")
         if isinstance(t, (int, float)):
@@ -207,6 +214,23 @@ class LiveView:
         tick = row.get("tick")
         if isinstance(tick, int):
             self._last_tick = tick
+
+    def _watched(self) -> bool:
+        """Whether a viewer subscribes to a topic rows are sent on."""
+        channels = self._channels
+        return any(channels[t].has_sinks() for t in _ROW_TOPICS if t in channels)
+
+    def record_block(self, block: TickBlock) -> None:
+        """A block of rows (:class:`~dentibot.telemetry.blocks.TickBlock`): :meth:`record` of
+        each, looking once whether a viewer watches them."""
+        n = len(block)
+        if not n or self._closed or self._error is not None or self._watched():
+            for row in block.rows():
+                self.record(row)
+            return
+        self.rows_queued += n
+        self._last_t = (block.k0 + n - 1) * block.ts
+        self._last_tick = block.k0 + n - 1
 
     def event(self, kind: str, detail: str = "", *, t: float | None = None,
               tick: int | None = None) -> None:

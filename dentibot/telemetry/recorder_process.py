@@ -1,34 +1,49 @@
 """The MCAP recorder in a process of its own: the control task hands rows over and goes on.
 
-Why. :class:`~dentibot.telemetry.recorder.McapRecorder`'s writer spends 20-30 us of CPU per
-tick (JSON, the ``/tf`` view, the mcap library's records, compression), all of it holding the
-interpreter lock the control task needs. :class:`RecorderProcess` runs that same recorder in a
-child process, on another core and under another interpreter lock, writing in the child's
-one thread. The control task pays for pickling its rows in batches (about 3 us a row), or a
-block of rows in its wire form (:meth:`RecorderProcess.record_block`,
-:meth:`~dentibot.telemetry.blocks.TickBlock.packed`: a header and the columns' bytes, about
-1 us where a pickle of the block took 20-50), and one pipe write per batch.
+Why. :class:`~dentibot.telemetry.recorder.McapRecorder`'s writer spends 5-20 us of CPU per
+tick (the ``/tf`` and ``/scene`` views, the mcap library's records, compression), all of it
+holding the interpreter lock the control task needs. :class:`RecorderProcess` runs that same
+recorder in a child process, on another core and under another interpreter lock, writing in
+the child's one thread.
 
-Same guarantees as :class:`~dentibot.telemetry.recorder.McapRecorder`, with the same
-parameters:
+How rows cross. Through the journal (:mod:`~dentibot.telemetry.journal`): a ring in a file
+beside the recording (``run.mcap.journal``), mapped into both processes. The control task
+copies each message into it (a pickled batch of rows and events, about 3 us a row, or a block
+of rows in its wire form, :meth:`RecorderProcess.record_block`, about 11 us for 256 ticks) and
+publishes it: no system call, no wake-up of the other process. The child looks every
+:data:`DRAIN_S` (or when rung: at close, or when the control task waits for room), writes what
+it finds and publishes each flush in the journal's header. Before the journal, the rows went
+through a pipe, 25 ticks at a time under a budget of 50 ticks at risk, and in lock-step time
+the control task waited for the child every 25 ticks: the recorder made the main job's
+drilling 1.9-2.4 times slower; with the journal, 1.06-1.38 (``benchmarks/real_tick.py``).
 
-- the budget is kept in ticks and covers everything a crash could lose: rows still in this
-  process's batch, in the pipe, queued in the child, in its unfinished chunk. The child reports
-  each flush; ``record()`` waits for one when ``budget`` ticks are at risk, at most
-  ``max_wait_s``, then drops the row and raises
-  :class:`~dentibot.telemetry.recorder.TelemetryOverflow`;
-- a batch leaves this process after ``send_ticks`` rows (a fifth of the budget, at most 10) or
-  half of ``flush_interval_s`` after its first row, whichever is first; events ride along;
-- if the child's writer dies, the next ``record()``, ``event()`` or ``close()`` raises
-  :class:`~dentibot.telemetry.schema.TelemetryError` with the cause;
-- errors of the arguments (file exists, bad compression...) are raised by the constructor,
-  as the in-process recorder raises them (the child builds the recorder and sends them back).
+What a crash can cost: nothing handed over. What the file does not hold yet is in the
+journal, which outlives the death of either process (the system keeps what a process wrote
+to a shared file mapping):
+
+- the control process dies (``kill -9``, a crash): the child sees its pipe close, writes out
+  everything in the journal and closes the file without ``/run/end`` or summary (readers flag
+  the recording incomplete), then deletes the journal;
+- the child dies: the next ``record()``, ``event()`` or ``close()`` raises
+  :class:`~dentibot.telemetry.schema.TelemetryError`, which says how many ticks the journal
+  keeps; ``dentibot recover`` writes the file with them
+  (:mod:`~dentibot.telemetry.recover`);
+- a closed recording has no journal.
+
+The budget. At most ``budget`` ticks handed over and not yet in the file:
+``journal_s`` [4.0] of procedure at the run's rate (2,000 ticks at 500 Hz), or ``max_queue``
+when given. The child writes the file at least every half budget (``flush_ticks``) and every
+``flush_interval_s`` of wall time; ``record()`` waits when the budget is full, at most
+``max_wait_s``, then drops the row and raises
+:class:`~dentibot.telemetry.recorder.TelemetryOverflow`. The journal's bytes
+(:data:`JOURNAL_BYTES_PER_TICK` per tick of budget) hold a full budget of rows. Other
+arguments are the in-process recorder's; errors of them (file exists, bad compression...) are
+raised by the constructor, as the in-process recorder raises them (the child builds the
+recorder and sends them back). Batches of rows leave this process after ``send_ticks`` items
+(a fifth of the budget, at most 10) or half of ``flush_interval_s`` after the first.
 
 What the child does on its own. It ignores SIGINT (Ctrl-C belongs to the control process,
-which stops the procedure safely and then closes the recording). If the control process dies
-(``kill -9``, a crash), the child sees its pipe close, writes out every row it received and
-closes the file without ``/run/end`` or summary: readers flag the recording incomplete, and
-it has lost only the rows that had not left the dead process (at most ``send_ticks``).
+which stops the procedure safely and then closes the recording).
 
 The child is started by multiprocessing's fork server (``forkserver``; ``spawn`` where there is
 none): it inherits no sockets or files of the control process, so a device connection closed
@@ -48,9 +63,7 @@ import os
 import pickle
 import select
 import signal
-import struct
 import sys
-import threading
 import time
 import types
 import weakref
@@ -64,23 +77,49 @@ import structlog
 from dentibot.errors import ConfigError
 from dentibot.logs import configure_default, configure_logging, logging_settings
 from dentibot.telemetry import wire_kernels as wk
-from dentibot.telemetry.blocks import WIRE_K0_AT, WIRE_N_AT, WIRE_TAG, TickBlock
-from dentibot.telemetry.recorder import McapRecorder, RecorderBase, TelemetryOverflow
+from dentibot.telemetry.blocks import WIRE_K0_AT, WIRE_N_AT, TickBlock
+from dentibot.telemetry.journal import (
+    COUNTERS,
+    LENGTH_BYTES,
+    SETTLED,
+    WAITING,
+    Journal,
+    items_of,
+    journal_path,
+)
+from dentibot.telemetry.recorder import (
+    DEFAULT_RATE_HZ,
+    McapRecorder,
+    RecorderBase,
+    TelemetryOverflow,
+)
 from dentibot.telemetry.schema import END_STATUSES, TelemetryError
 
 __all__ = ["Recorder", "RecorderProcess", "Wire", "open_recorder"]
 
 log = structlog.get_logger("dentibot.telemetry")
 
-#: counters kept by the child's recorder, reported with each flush (McapRecorder's names)
+#: counters kept by the child's recorder, published in the journal's header at each flush
+#: (McapRecorder's names)
 CHILD_COUNTERS = ("ticks_written", "events_written", "rows_rejected", "rows_invalid",
                   "nonfinite_rows", "flushes", "rows_flushed", "bytes_flushed",
                   "transforms_written", "scenes_written", "view_errors")
-#: A flush's report, the child's most frequent message, packed rather than pickled (a
-#: pickled tuple with the counters' dict cost 20-30 us a flush at each end): this tag, the
-#: ticks settled, then CHILD_COUNTERS in order (int64). Other reports are pickles.
-_FLUSHED = wk.FLUSHED_TAG
-_FLUSHED_BODY = struct.Struct(f"<{1 + len(CHILD_COUNTERS)}q")
+#: procedure time the journal holds beyond the file by default (the budget: 2,000 ticks at
+#: 500 Hz). The file is written every half of it, or every ``flush_interval_s`` of wall time
+#: when the run is slower: in lock-step time, steps of 1,000 ticks instead of 25, where the
+#: writer spends half the CPU per tick
+JOURNAL_S = 4.0
+#: the journal's bytes per tick of budget: a tick row pickled with the others of its batch
+#: takes about 1.6 kB, a block's tick 336 bytes
+JOURNAL_BYTES_PER_TICK = 4096
+#: the child's longest sleep between two looks at the journal: in lock-step time a few
+#: hundred ticks arrive meanwhile, written in one go
+DRAIN_S = 0.005
+#: the longest wait of the control process for room before it looks again (the child tells
+#: it when it flushes; this is for a flush that came between its look and its request)
+_ROOM_POLL_S = 0.005
+#: the control process's message saying the journal exists (then only doorbell bytes follow)
+_JOURNAL_READY = b"journal"
 START_TIMEOUT_S = 30.0       # the fork server's first start imports this module
 CLOSE_TIMEOUT_S = 120.0      # the child writes out at most a budget of rows, then the summary
 _PRELOAD = ["dentibot.telemetry.recorder_process"]
@@ -190,8 +229,9 @@ def _take_spare() -> _Child | None:
 class RecorderProcess(RecorderBase):
     """:class:`~dentibot.telemetry.recorder.McapRecorder` run in a child process (see the
     module docstring). Same constructor arguments (a file path only), same methods
-    (``record``, ``event``, ``close``, ``duration_s``, context manager) and counters; the
-    counters the writer keeps are those of the child's last reported flush, final after
+    (``record``, ``event``, ``close``, ``duration_s``, context manager) and counters, plus
+    ``journal_s``: the procedure time the journal holds beyond the file (the budget);
+    the counters the writer keeps are those of the child's last flush, final after
     :meth:`close`.
     """
 
@@ -211,6 +251,7 @@ class RecorderProcess(RecorderBase):
         # one poll object for the acks (Connection.poll builds a selector each call: 15 us)
         self._acks_poll = select.poll()
         self._acks_poll.register(acks_r.fileno(), select.POLLIN)
+        self.journal: Journal | None = None
         # dropped without close(): the pipes close, the child writes out what it has
         self._release = weakref.finalize(self, _release, rows_w, acks_r)
         rows_w.send((str(path), metadata, options, logging_settings()))
@@ -219,7 +260,16 @@ class RecorderProcess(RecorderBase):
             self._release()
             self._proc.join()
             raise ready[1]
-        _, self.metadata, self.budget, self.period_s = ready
+        _, self.metadata, self.budget, self.period_s, capacity = ready
+        try:
+            self.journal = Journal.create(journal_path(self.path), capacity)
+        except TelemetryError:
+            self._release()                       # the child sees its pipe close: it ends
+            self._proc.join()
+            raise
+        self._release = weakref.finalize(self, _release, rows_w, acks_r, self.journal)
+        rows_w.send_bytes(_JOURNAL_READY)
+        os.set_blocking(rows_w.fileno(), False)   # from now on, doorbells only
         self.start_wall_ns: int = self.metadata["start_wall_ns"]
         self.max_wait_s = float(max_wait_s)
         self.send_ticks = max(1, min(10, self.budget // 5))
@@ -231,8 +281,7 @@ class RecorderProcess(RecorderBase):
         self.queue_depth_max = 0
         self.at_risk_max = 0
         self.backpressure_waits = 0
-        self._counters = dict.fromkeys(CHILD_COUNTERS, 0)
-        self._settled = 0                        # ticks the child has flushed (or rejected)
+        self._final: dict[str, int] | None = None   # the child's counters at its end
         self._pending: list[tuple[str, Any]] = []
         self._pending_since = 0.0
         self._last_t = 0.0
@@ -248,21 +297,35 @@ class RecorderProcess(RecorderBase):
             raise TelemetryError(self.path, f"the recorder process did not start within "
                                  f"{START_TIMEOUT_S:g} s")
         try:
-            while True:
-                msg = _ack(self._acks.recv_bytes())
-                if msg[0] != "flushed":           # the constructor's first flush (/run)
-                    return msg
+            return pickle.loads(self._acks.recv_bytes())
         except EOFError:
             self._proc.join()
             raise TelemetryError(self.path, f"the recorder process died at start (exit code "
                                  f"{self._proc.exitcode})") from None
 
+    @property
+    def _settled(self) -> int:
+        """Ticks the child has written to the file (or rejected)."""
+        j = self.journal
+        return 0 if j is None or j.hdr is None else int(j.hdr[SETTLED])
+
+    @property
+    def _counters(self) -> dict[str, int]:
+        """The child's counters: those of its last flush, or of its end."""
+        if self._final is not None:
+            return self._final
+        j = self.journal
+        if j is None or j.hdr is None:
+            return dict.fromkeys(CHILD_COUNTERS, 0)
+        cells = j.hdr[COUNTERS:COUNTERS + len(CHILD_COUNTERS)].tolist()
+        return dict(zip(CHILD_COUNTERS, cells, strict=True))
+
     # -- caller side (the control task) ----------------------------------------------------
 
     def record(self, row: dict[str, Any]) -> None:
-        """Hand one tick row over. Returns at once unless ``budget`` ticks are at risk; then
-        waits for the child's next flush, at most ``max_wait_s`` (then the row is dropped and
-        TelemetryOverflow raised). The row must not be changed afterwards."""
+        """Hand one tick row over. Returns at once unless ``budget`` ticks are not in the
+        file yet; then waits for the child's next flush, at most ``max_wait_s`` (then the row
+        is dropped and TelemetryOverflow raised). The row must not be changed afterwards."""
         if self._dead is not None or self._closed:
             self._raise_dead()
         if self.rows_queued - self._settled >= self.budget:
@@ -272,9 +335,6 @@ class RecorderProcess(RecorderBase):
             self._pending_since = time.monotonic()
         pending.append(("tick", row))
         self.rows_queued += 1
-        at_risk = self.rows_queued - self._settled
-        if at_risk > self.at_risk_max:
-            self.at_risk_max = at_risk
         if len(pending) > self.queue_depth_max:
             self.queue_depth_max = len(pending)
         t = row.get("t")
@@ -297,10 +357,9 @@ class RecorderProcess(RecorderBase):
         if self._pending:                         # what came before it, first
             self._send()
         self.rows_queued += n
-        self.at_risk_max = max(self.at_risk_max, self.rows_queued - self._settled)
         self.queue_depth_max = max(self.queue_depth_max, n)
         self._last_t = (block.k0 + n - 1) * block.ts
-        self._write(b"".join(block.packed()))     # its wire form: no pickle
+        self._write(b"".join(block.packed()), n, {"tick": block.k0})   # no pickle
 
     def event(self, kind: str, detail: str = "", *, t: float | None = None,
               tick: int | None = None) -> None:
@@ -319,27 +378,56 @@ class RecorderProcess(RecorderBase):
             data = pickle.dumps(items, _PICKLE)
         except (pickle.PicklingError, TypeError, AttributeError):
             data = pickle.dumps([it for it in items if _picklable(it, self.path)], _PICKLE)
-        self._write(data, raise_dead)
+        ticks = [payload for kind, payload in items if kind == "tick"]
+        self._write(data, len(ticks), ticks[0] if ticks else None, raise_dead)
 
-    def _write(self, data: bytes, raise_dead: bool = True) -> None:
-        """One message to the child (a pickled list of items, or a packed block); then
-        read what it reported."""
-        try:
-            self._rows.send_bytes(data)
-        except OSError as exc:                    # the child is gone
-            self._gone(str(exc))
-            if raise_dead:
-                self._raise_dead()
-            return
+    def _write(self, data: bytes, ticks: int, first: Any, raise_dead: bool = True) -> None:
+        """One message into the journal (a pickled list of items, or a packed block of
+        ``ticks`` ticks from row ``first``), after waiting for room in it; then read what the
+        child reported. Without room within ``max_wait_s``, its ticks are dropped (and
+        TelemetryOverflow raised)."""
+        j = self.journal
+        size = len(data) + LENGTH_BYTES
+        if size > j.capacity:
+            self.rows_queued -= ticks
+            raise TelemetryError(self.path, f"a message of {size} bytes exceeds the "
+                                 f"journal's {j.capacity}")
+        if j.room() < size:
+            try:
+                self._wait_until(lambda: j.room() >= size, first, max(ticks, 1))
+            except TelemetryOverflow:
+                self.rows_queued -= ticks
+                raise
+            if self._dead is not None:
+                if raise_dead:
+                    self._raise_dead()
+                return
+        j.put(data)
+        self.at_risk_max = max(self.at_risk_max, self.rows_queued - self._settled)
         self._read_acks()
 
+    def _ring(self) -> None:
+        """Wake the child now (it wakes every few milliseconds anyway)."""
+        try:
+            os.write(self._rows.fileno(), b"\0")
+        except BlockingIOError:                   # doorbells enough are waiting
+            pass
+        except OSError as exc:                    # the child is gone
+            self._gone(str(exc))
+
     def _gone(self, why: str) -> None:
-        """Writing to the child failed (``why``): what it reported last is read, and the
+        """The child cannot be reached (``why``): what it reported last is read, and the
         recorder is dead, with the child's own report if it sent one."""
         self._read_acks()
         if self._dead is None:
             self._dead = TelemetryError(self.path, f"the recorder process is gone (exit code "
-                                        f"{self._proc.exitcode}): {why}")
+                                        f"{self._proc.exitcode}): {why}; {self._kept()}")
+
+    def _kept(self) -> str:
+        """Where the ticks not in the file are."""
+        return (f"the {self.rows_queued - self._settled} ticks handed over and not in the "
+                f"file are kept in {journal_path(self.path).name}: 'dentibot recover' adds "
+                f"them")
 
     def _read_acks(self, timeout: float = 0.0) -> bool:
         """Read what the child reported; wait up to ``timeout`` for the first message.
@@ -348,44 +436,49 @@ class RecorderProcess(RecorderBase):
         got = False
         try:
             while ready(max(timeout, 0.0) * 1000.0):
-                self._on_ack(_ack(acks.recv_bytes()))
+                self._on_ack(pickle.loads(acks.recv_bytes()))
                 got = True
                 timeout = 0.0
         except (EOFError, OSError):
             if self._dead is None and not (self._closed and self.end is not None):
                 self._dead = TelemetryError(self.path, f"the recorder process died (exit code "
-                                            f"{self._proc.exitcode}); rows since its last "
-                                            f"flush ({self._counters['rows_flushed']} ticks on "
-                                            f"disk) are lost")
+                                            f"{self._proc.exitcode}); {self._kept()}")
         return got
 
     def _on_ack(self, msg: tuple) -> None:
         kind = msg[0]
-        if kind == "flushed":
-            self._settled, counters = msg[1], msg[2]
-            self._counters.update(counters)
-        elif kind == "dead":
+        if kind == "dead":
             self._dead = msg[1]
-            self._counters.update(msg[2])
         elif kind == "closed":
             self.end = msg[1]
-            self._counters.update(msg[2])
+            self._final = msg[2]
             if msg[3] is not None and self._dead is None:
                 self._dead = msg[3]
 
     def _wait_for_room(self, row: Any, n: int = 1) -> None:
         """Wait until ``n`` more ticks fit in the budget."""
-        self.backpressure_waits += 1
         if self._pending:
             self._send()
-        deadline = time.monotonic() + self.max_wait_s
-        while self.rows_queued - self._settled + n > self.budget and self._dead is None:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                self._overflow(row, n)
-            self._read_acks(remaining)
+        self._wait_until(lambda: self.rows_queued - self._settled + n <= self.budget, row, n)
         if self._dead is not None:
             self._raise_dead()
+
+    def _wait_until(self, room: Any, row: Any, count: int) -> None:
+        """Wait until ``room()``, waking the child; after ``max_wait_s``, ``count`` ticks from
+        ``row`` are dropped (TelemetryOverflow). Returns early when the child is dead."""
+        self.backpressure_waits += 1
+        deadline = time.monotonic() + self.max_wait_s
+        hdr = self.journal.hdr
+        while not room() and self._dead is None:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                self._overflow(row, count)
+            hdr[WAITING] = 1                      # the child says when it flushes
+            if room():                            # (it may have, just before)
+                break
+            self._ring()
+            self._read_acks(min(remaining, _ROOM_POLL_S))
+        hdr[WAITING] = 0
 
     def _raise_dead(self) -> None:
         if self._dead is not None:
@@ -401,7 +494,7 @@ class RecorderProcess(RecorderBase):
 
     @property
     def at_risk(self) -> int:
-        """Ticks handed over and not yet flushed to the OS: what a crash now could lose."""
+        """Ticks handed over and not yet in the file: they are in the journal."""
         self._read_acks()
         return max(self.rows_queued - self._settled, 0)
 
@@ -430,7 +523,9 @@ class RecorderProcess(RecorderBase):
         self._closed = True
         self._pending.append(("end", (status, reason,
                                       self.duration_s() if duration_s is None else duration_s)))
-        self._send(raise_dead=False)              # a dead writer is reported below, once
+        if self._dead is None:
+            self._send(raise_dead=False)          # a dead writer is reported below, once
+            self._ring()
         deadline = time.monotonic() + CLOSE_TIMEOUT_S
         while self.end is None and self._proc.is_alive() and time.monotonic() < deadline:
             self._read_acks(0.1)
@@ -441,10 +536,12 @@ class RecorderProcess(RecorderBase):
             self._proc.join()
             self._dead = self._dead or TelemetryError(
                 self.path, f"the recorder process did not finish within {CLOSE_TIMEOUT_S:g} s")
-        self._release()
         if self.end is None and self._dead is None:
             self._dead = TelemetryError(self.path, f"the recorder process ended without "
-                                        f"finishing the file (exit code {self._proc.exitcode})")
+                                        f"finishing the file (exit code {self._proc.exitcode}); "
+                                        f"{self._kept()}")
+        self._final = self._counters             # read before the journal is unmapped
+        self._release()
         if self._dead is not None and not self._dead_reported:
             self._raise_dead()
         return self.end
@@ -455,21 +552,18 @@ Recorder = McapRecorder | RecorderProcess
 
 
 class Wire:
-    """A :class:`RecorderProcess`'s pipe for compiled code
+    """A :class:`RecorderProcess`'s journal for compiled code
     (:func:`~dentibot.telemetry.wire_kernels.send_block`): the blocks of a compiled call's
-    ticks go to the recorder's process from the call itself, as
-    :meth:`RecorderProcess.record_block` hands them over (the same bytes, the same budget of
-    ticks at risk, its flush reports read), while the call runs without the interpreter
-    lock. :meth:`begin` before the call gives the kernel's arguments; :meth:`end` after it
-    brings the recorder up to date."""
+    ticks go into the journal from the call itself, as
+    :meth:`RecorderProcess.record_block` puts them (the same bytes, the same budget of
+    ticks, the same waits for room), while the call runs without the interpreter lock.
+    :meth:`begin` before the call gives the kernel's arguments; :meth:`end` after it brings
+    the recorder up to date."""
 
     def __init__(self, rec: RecorderProcess, width: int, max_ticks: int) -> None:
         self.rec = rec
         self.width = int(width)
         self.st = np.zeros(wk.ST_SIZE, dtype=np.int64)
-        report = 1 + _FLUSHED_BODY.size
-        self.flush = np.zeros(report, dtype=np.uint8)
-        self.incoming = np.zeros(4 + report, dtype=np.uint8)
         self._max_ticks = int(max_ticks)
         self.msg = np.zeros(0, dtype=np.uint8)
         self._head: tuple | None = None
@@ -478,7 +572,7 @@ class Wire:
               reversals: int, phantom_euler: tuple) -> tuple:
         """Before a call whose blocks share these (a :class:`~dentibot.telemetry.blocks.TickBlock`'s
         fields): what was handed over before goes first; the kernel's arguments
-        ``(st, msg, head_size, k0_at, n_at, incoming, flush)``."""
+        ``(st, hdr, ring, msg, head_size, k0_at, n_at)``."""
         rec = self.rec
         if rec._dead is not None or rec._closed:
             rec._raise_dead()
@@ -490,27 +584,27 @@ class Wire:
             # the header of a block of these (its first tick and count written per block)
             head = TickBlock(np.zeros((1, self.width)), 0, ts, step, state, working_length_mm,
                              reversals, tuple(phantom_euler)).packed()[0]
-            size = 4 + len(head) + 8 * self.width * self._max_ticks
+            size = LENGTH_BYTES + len(head) + 8 * self.width * self._max_ticks
             if self.msg.shape[0] < size:
                 self.msg = np.zeros(size, dtype=np.uint8)
-            self.msg[4:4 + len(head)] = np.frombuffer(head, dtype=np.uint8)
-            self._head_size = 4 + len(head)
+            self.msg[LENGTH_BYTES:LENGTH_BYTES + len(head)] = np.frombuffer(head, dtype=np.uint8)
+            self._head_size = LENGTH_BYTES + len(head)
             self._head = key
         st = self.st
         st[:] = 0
-        st[wk.QUEUED], st[wk.SETTLED], st[wk.BUDGET] = rec.rows_queued, rec._settled, rec.budget
+        st[wk.QUEUED], st[wk.BUDGET] = rec.rows_queued, rec.budget
         st[wk.ROWS_FD], st[wk.ACKS_FD] = rec._rows.fileno(), rec._acks.fileno()
         st[wk.MAX_WAIT_MS] = max(1, round(rec.max_wait_s * 1000))
         st[wk.AT_RISK_MAX] = rec.at_risk_max
-        return (st, self.msg, self._head_size, 4 + WIRE_K0_AT, 4 + WIRE_N_AT, self.incoming,
-                self.flush)
+        j = rec.journal
+        return (st, j.hdr, j.ring, self.msg, self._head_size, LENGTH_BYTES + WIRE_K0_AT,
+                LENGTH_BYTES + WIRE_N_AT)
 
     def end(self, last_tick: int, ts: float, group: int) -> None:
         """After the call (``last_tick``: the last tick it handed over, ``group``: its blocks'
-        size): the recorder's counts and the reports read; a report that is not a flush is
-        taken as :meth:`RecorderProcess.record_block` takes it. Raises what it would raise:
-        the recorder dead or closed, or no room within its longest wait (an overflow of the
-        block that found none)."""
+        size): the recorder's counts and the child's reports read. Raises what
+        :meth:`RecorderProcess.record_block` would raise: the recorder dead or closed, or no
+        room within its longest wait (an overflow of the block that found none)."""
         rec, st = self.rec, self.st
         sent = int(st[wk.QUEUED]) - rec.rows_queued
         if sent:
@@ -518,19 +612,8 @@ class Wire:
             rec.queue_depth_max = max(rec.queue_depth_max, min(sent, group))
             rec._last_t = last_tick * ts
         rec.at_risk_max = max(rec.at_risk_max, int(st[wk.AT_RISK_MAX]))
-        if st[wk.FLUSHES]:
-            rec._on_ack(_ack(self.flush.tobytes()))
         status = int(st[wk.STATUS])
-        if status == wk.OTHER:
-            size = int(st[wk.OTHER_LEN])
-            try:
-                data = (self.incoming[4:4 + size].tobytes() if st[wk.OTHER_READ]
-                        else _read_exactly(rec._acks.fileno(), size))
-            except (EOFError, OSError):
-                status = wk.PIPE
-            else:
-                rec._on_ack(_ack(data))
-                rec._read_acks()
+        rec._read_acks()                          # a report stopped the call, or may be there
         if status == wk.PIPE:
             rec._gone("its pipe failed")
         if rec._dead is not None:
@@ -565,27 +648,31 @@ def _picklable(item: tuple[str, Any], path: Path) -> bool:
 
 # -- the child process -----------------------------------------------------------------------
 
-def _flushed(settled: int, counters: dict[str, int]) -> bytes:
-    """A flush's report, packed (read back by :func:`_ack`)."""
-    return _FLUSHED + _FLUSHED_BODY.pack(settled, *(counters[n] for n in CHILD_COUNTERS))
-
-
-def _ack(data: bytes) -> tuple:
-    """A report of the child as the tuple it stands for (a packed flush, or a pickle)."""
-    if data[:1] == _FLUSHED:
-        settled, *counters = _FLUSHED_BODY.unpack_from(data, 1)
-        return "flushed", settled, dict(zip(CHILD_COUNTERS, counters, strict=True))
-    return pickle.loads(data)
-
-
 def _counters(rec: McapRecorder) -> dict[str, int]:
     return {name: getattr(rec, name) for name in CHILD_COUNTERS}
 
 
+def _check_journal_s(journal_s: Any) -> float:
+    if not (isinstance(journal_s, (int, float)) and not isinstance(journal_s, bool)
+            and math.isfinite(journal_s) and journal_s > 0):
+        raise ConfigError("telemetry.journal_s", journal_s, "a finite number > 0 (s)")
+    return float(journal_s)
+
+
+def _journal_budget(rec: McapRecorder, options: dict[str, Any], journal_s: float) -> int:
+    """The process's budget in ticks: ``max_queue`` when given, else ``journal_s`` of
+    procedure at the run's rate (the in-process recorder's default rate without one)."""
+    if options.get("max_queue") is not None:
+        return rec.budget
+    period = rec.period_s or 1.0 / DEFAULT_RATE_HZ
+    return max(1, math.floor(journal_s / period + 1e-9))
+
+
 def _child_main(rows: Connection, acks: Connection) -> None:
-    """The recorder process: wait for its file's arguments, build the recorder, feed it what
-    arrives, report flushes. It logs as the control process does (level, format, on stderr:
-    never on the standard output that ``--json`` reports own)."""
+    """The recorder process: wait for its file's arguments, build the recorder, then write
+    what the journal brings (waking every :data:`DRAIN_S`, or when the control process rings),
+    publishing each flush in the journal's header. It logs as the control process does (level,
+    format, on stderr: never on the standard output that ``--json`` reports own)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _terminated)
     try:
@@ -596,76 +683,116 @@ def _child_main(rows: Connection, acks: Connection) -> None:
         configure_logging(logs[0], json=logs[1])
     else:
         configure_default()
-    lock = threading.Lock()                  # the writer thread reports flushes too
-
-    def send(data: bytes) -> None:
-        with lock:
-            acks.send_bytes(data)
 
     def report(msg: tuple) -> None:
-        send(pickle.dumps(msg, _PICKLE))
+        acks.send_bytes(pickle.dumps(msg, _PICKLE))
+
+    journal: Journal | None = None
+    done_at = 0                                   # the byte after the last message written
 
     def flushed(rec: McapRecorder) -> None:
-        try:
-            send(_flushed(rec._settled, _counters(rec)))   # noqa: SLF001 - our own
-        except OSError:
-            pass                                 # the parent is gone: the main loop sees it
+        if journal is not None:
+            journal.release(done_at, rec._settled,
+                            [getattr(rec, n) for n in CHILD_COUNTERS])
+            if journal.hdr[WAITING]:             # the control process waits for room
+                journal.hdr[WAITING] = 0
+                try:
+                    report(("room",))
+                except OSError:                  # it is gone: the main loop sees it
+                    pass
 
+    options = dict(options)
     try:
+        journal_s = _check_journal_s(options.pop("journal_s", JOURNAL_S))
         # written here, in the process's one thread: no writer thread to hand the rows to
         rec = McapRecorder(path, metadata, on_flush=flushed, writer_thread=False, **options)
     except BaseException as exc:  # noqa: BLE001 - sent to the parent, raised there
         report(("error", exc if _pickles(exc) else TelemetryError(path, repr(exc))))
         return
-    rate = rec.metadata.get("rate_hz")
-    period = 1.0 / rate if isinstance(rate, (int, float)) and math.isfinite(rate) and rate > 0 \
-        else None
-    report(("ready", rec.metadata, rec.budget, period))
+    budget = _journal_budget(rec, options, journal_s)
+    rec.budget, rec.flush_ticks = budget, max(1, budget // 2)
+    report(("ready", rec.metadata, budget, rec.period_s, _capacity(budget)))
+    try:
+        if rows.recv_bytes() != _JOURNAL_READY:
+            raise EOFError
+        journal = Journal.open(journal_path(path))
+    except (EOFError, OSError, TelemetryError, _Terminated):   # the parent could not make it
+        rec.close_unfinished()                   # nothing recorded: no file left behind
+        Path(path).unlink(missing_ok=True)
+        return
+    bell = rows.fileno()
+    poller = select.poll()
+    poller.register(bell, select.POLLIN)
     dead: TelemetryError | None = None
-    poller = select.poll()               # made once (Connection.poll builds one a call)
-    poller.register(rows.fileno(), select.POLLIN)
-    ready, wait_ms = poller.poll, rec.flush_interval_s * 1000.0
-    while True:
-        try:
-            if not ready(wait_ms):
-                if dead is None:
-                    try:
-                        rec.flush_due()          # the rows of a pause reach the file
-                    except TelemetryError as exc:
-                        dead = exc
-                        report(("dead", exc if _pickles(exc) else TelemetryError(path, repr(exc)),
-                                _counters(rec)))
-                continue
-            data = rows.recv_bytes()
-            items = ([("block", TickBlock.unpack(data))] if data[:1] == WIRE_TAG
-                     else pickle.loads(data))
-        except (EOFError, OSError, _Terminated):  # the control process is gone, or ending
-            rec.close_unfinished()               # without closing (daemon: terminated)
-            return
-        for kind, payload in items:
-            if kind == "end":
-                status, reason, duration = payload
-                error = None
+    wait_ms = min(DRAIN_S, rec.flush_interval_s / 2) * 1000.0
+    parent_gone = False
+
+    def died(exc: TelemetryError) -> None:
+        nonlocal dead
+        dead = exc
+        report(("dead", exc if _pickles(exc) else TelemetryError(path, repr(exc))))
+
+    try:
+        while True:
+            if poller.poll(wait_ms):
                 try:
-                    end = rec.close(status, reason, duration)
+                    parent_gone = not os.read(bell, 4096)   # doorbells, or the pipe closed
+                except OSError:
+                    parent_gone = True
+            for end, message in journal.messages(done_at):
+                if dead is not None:
+                    break                        # the parent knows; wait for its close
+                for kind, payload in items_of(message):
+                    if kind == "end":
+                        _close(rec, journal, payload, dead, report)
+                        return
+                    try:
+                        if kind == "tick":
+                            rec.record(payload)
+                        elif kind == "block":
+                            rec.record_block(payload)
+                        else:
+                            ev_kind, detail, t, tick = payload
+                            rec.event(ev_kind, detail, t=t, tick=tick)
+                    except TelemetryError as exc:
+                        died(exc)
+                        break
+                done_at = end
+            if dead is None:
+                try:
+                    rec.flush_due()              # the rows of a pause reach the file
                 except TelemetryError as exc:
-                    end, error = rec.end, (None if dead is not None else exc)
-                report(("closed", end, _counters(rec), error))
+                    died(exc)
+            if parent_gone:                      # every message it wrote is read: close
+                rec.close_unfinished()           # without /run/end (the run did not end)
+                if dead is None and rec.error is None:
+                    journal.unlink()             # all of it is in the file
                 return
-            if dead is not None:
-                continue                         # the parent knows; wait for its close
-            try:
-                if kind == "tick":
-                    rec.record(payload)
-                elif kind == "block":
-                    rec.record_block(payload)
-                else:
-                    ev_kind, detail, t, tick = payload
-                    rec.event(ev_kind, detail, t=t, tick=tick)
-            except TelemetryError as exc:
-                dead = exc
-                report(("dead", exc if _pickles(exc) else TelemetryError(path, repr(exc)),
-                        _counters(rec)))
+    except _Terminated:                           # ending with the parent (daemon): the
+        rec.close_unfinished()                    # journal keeps what the file lacks
+    except OSError:                               # the parent is gone mid-report
+        rec.close_unfinished()
+
+
+def _close(rec: McapRecorder, journal: Journal, payload: tuple, dead: TelemetryError | None,
+           report: Any) -> None:
+    """The run's end: the file finished, the journal deleted once all it held is in it."""
+    status, reason, duration = payload
+    error = None
+    try:
+        end = rec.close(status, reason, duration)
+    except TelemetryError as exc:
+        end, error = rec.end, (None if dead is not None else exc)
+    if error is None and dead is None:
+        journal.unlink()
+    journal.close()
+    report(("closed", end, _counters(rec), error))
+
+
+def _capacity(budget: int) -> int:
+    """The journal's bytes for ``budget`` ticks: room for them as pickled rows (the larger
+    form; a block's tick is 336 bytes), and never less than 1 MiB."""
+    return max(1 << 20, budget * JOURNAL_BYTES_PER_TICK)
 
 
 class _Terminated(Exception):  # noqa: N818 - a signal, not an error

@@ -12,6 +12,14 @@ summary and footer. Nothing is invented: no ``/run/end`` is added (the run's end
 recorded), and a ``dentibot.recovery`` metadata record says where the file comes from and what
 was saved, so that readers and ``dentibot report`` call the recording incomplete.
 
+A recording written by the recorder's own process has a journal beside it while it is open
+(``run.mcap.journal``, :mod:`~dentibot.telemetry.journal`): the ticks, events and end handed
+over that the file may not hold yet. When a crash left one, the recovery adds what it holds
+beyond the file: the ``/tick`` messages of the ticks after the last one in the file, the
+``/events`` not in it, and ``/run/end`` if the run had handed its end over. Their ``/tf`` and
+``/scene`` (the 3D views drawn from the rows) are not redrawn. The journal is read, never
+changed or deleted.
+
 A source that its recorder finished (footer with summary, read without damage) is intact:
 nothing is written unless ``rewrite=True`` (then a plain re-indexed copy, without the recovery
 record). An existing output is never replaced without ``force=True``; the output is written
@@ -22,6 +30,7 @@ half-written.
 from __future__ import annotations
 
 import os
+import pickle
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -41,7 +50,9 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from dentibot.telemetry.cdr import CDR_LE, TICK_CODEC, CdrError
+from dentibot.telemetry.journal import items_of, journal_path, read_journal
 from dentibot.telemetry.reader import RECOVERY_METADATA_NAME
+from dentibot.telemetry.recorder import _dumps, _log_time_ns, _without_none
 from dentibot.telemetry.schema import TelemetryError
 
 __all__ = ["RecoveryResult", "default_output", "recover_recording"]
@@ -58,7 +69,9 @@ class RecoveryResult:
     ``has_end``: a ``/run/end`` message was among them; ``rate_hz``: from ``/run``;
     ``bytes_used`` of ``bytes_total``: where the last complete record ended; ``stopped``: why
     reading stopped before a finished end ('' if it did not); ``recovered_before``: the
-    source was itself written by a recovery (its recovery record).
+    source was itself written by a recovery (its recovery record); ``journal_ticks``,
+    ``journal_events``: what its journal added (counted in ``ticks`` and ``events`` too);
+    ``journal``: the journal read, or why it could not be ('' without one).
     """
 
     source: Path
@@ -77,6 +90,12 @@ class RecoveryResult:
     stopped: str = ""
     recovered_before: dict[str, str] | None = None
     skipped: list[str] = field(default_factory=list)
+    journal_ticks: int = 0
+    journal_events: int = 0
+    journal: str = ""
+    # what the journal is checked against: the file's events (tick, kind, detail) and start
+    _events: set = field(default_factory=set, repr=False, compare=False)
+    _start_ns: int | None = field(default=None, repr=False, compare=False)
 
     @property
     def seconds(self) -> float | None:
@@ -85,7 +104,7 @@ class RecoveryResult:
 
     def to_dict(self) -> dict:
         """Every field, paths as strings, plus ``seconds`` (``dentibot recover --json``)."""
-        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.repr}
         out["source"] = str(self.source)
         out["out"] = None if self.out is None else str(self.out)
         out["seconds"] = self.seconds
@@ -149,8 +168,9 @@ def recover_recording(source: str | os.PathLike[str], out: str | os.PathLike[str
         if dst.resolve() == src.resolve() and not result.intact:
             raise TelemetryError(dst, "the output must not replace the recording it is read "
                                  "from")
+        extra = [] if result.intact else _from_journal(journal_path(src), result)
         f.seek(0)
-        _write(_records(f, n_records), result, dst)
+        _write(_records(f, n_records), result, dst, extra)
     result.out = dst
     return result
 
@@ -201,10 +221,11 @@ def _scan(f, src: Path) -> tuple[RecoveryResult, int]:
                     ticks.append(_tick_of(record.data))
                 elif topic == "/events":
                     result.events += 1
+                    result._events.add(_event_key(record.data))
                 elif topic == "/run/end":
                     result.has_end = True
                 elif topic == "/run" and result.rate_hz is None:
-                    result.rate_hz = _rate_of(record.data)
+                    result.rate_hz, result._start_ns = _run_of(record.data)
         result.bytes_used = tracked.count
     except Exception as exc:  # noqa: BLE001 - any damage ends the readable part
         result.stopped = (f"stopped at byte {result.bytes_used} of {size}: "
@@ -234,21 +255,100 @@ def _tick_of(data: bytes) -> int | None:
     return tick if isinstance(tick, int) and not isinstance(tick, bool) else None
 
 
-def _rate_of(data: bytes) -> float | None:
+def _run_of(data: bytes) -> tuple[float | None, int | None]:
+    """The ``/run`` message's rate (Hz) and wall-clock start (ns), None where unusable."""
     try:
-        rate = orjson.loads(data).get("rate_hz")
+        run = orjson.loads(data)
+        rate, start = run.get("rate_hz"), run.get("start_wall_ns")
+    except (orjson.JSONDecodeError, AttributeError):
+        return None, None
+    ok = isinstance(rate, (int, float)) and not isinstance(rate, bool) and rate > 0
+    start_ok = isinstance(start, int) and not isinstance(start, bool) and start >= 0
+    return (float(rate) if ok else None), (start if start_ok else None)
+
+
+def _event_key(data: bytes) -> tuple | None:
+    try:
+        ev = orjson.loads(data)
+        return ev.get("tick"), ev.get("kind"), ev.get("detail", "")
     except (orjson.JSONDecodeError, AttributeError):
         return None
-    ok = isinstance(rate, (int, float)) and not isinstance(rate, bool) and rate > 0
-    return float(rate) if ok else None
 
 
-def _write(records: Iterable[McapRecord], result: RecoveryResult, dst: Path) -> None:
-    """The records into a finished MCAP file at ``dst`` (temporary name, then renamed)."""
+def _from_journal(path: Path, result: RecoveryResult) -> list[tuple[str, int, bytes, int]]:
+    """The messages the journal at ``path`` adds to the file's (topic, log time, data,
+    sequence): see the module docstring. Its figures go into ``result``; a journal that
+    cannot be read is said there and adds nothing."""
+    if not path.exists():
+        return []
+    start = result._start_ns
+    if start is None:
+        result.journal = f"{path.name}: not used (the file has no /run with its start)"
+        return []
+    try:
+        cells, messages = read_journal(path)
+        items = [item for m in messages for item in items_of(m)]
+    except (OSError, TelemetryError, ValueError, pickle.UnpicklingError, EOFError) as exc:
+        result.journal = f"{path.name}: unreadable ({exc})"
+        return []
+    out: list[tuple[str, int, bytes, int]] = []
+    last = -1 if result.last_tick is None else result.last_tick
+    last_t, last_ns, added = 0.0, start, []
+    for kind, payload in items:
+        rows = payload.rows() if kind == "block" else [payload] if kind == "tick" else []
+        for row in rows:
+            tick = row.get("tick")
+            if not isinstance(tick, int) or tick <= last:
+                continue
+            try:
+                data = TICK_CODEC.encode(row)
+            except CdrError as exc:
+                result.skipped.append(f"journal tick {tick}: {exc}")
+                continue
+            last_ns = _log_time_ns(start, row.get("t"), last_ns)
+            last_t = row.get("t", last_t)
+            out.append(("/tick", last_ns, data, tick & 0xFFFFFFFF))
+            added.append(tick)
+            last = tick
+        if kind == "event":
+            ev_kind, detail, t, tick = payload
+            ev = {"t": last_t if t is None else t, "tick": last if tick is None else tick,
+                  "kind": ev_kind, "detail": detail}
+            if (ev["tick"], ev_kind, detail) in result._events:
+                continue
+            out.append(("/events", _log_time_ns(start, ev["t"], last_ns),
+                        _dumps(_without_none(ev)),
+                        ev["tick"] & 0xFFFFFFFF if isinstance(ev["tick"], int) else 0))
+            result.journal_events += 1
+        elif kind == "end" and not result.has_end:
+            status, reason, duration = payload
+            out.append(("/run/end", last_ns, _dumps({"status": status, "reason": reason,
+                                                     "duration_s": duration}), 0))
+            result.has_end = True
+    if added:
+        if result.first_tick is None:
+            result.first_tick = added[0]
+            result.missing_ticks = added[-1] - added[0] + 1 - len(added)
+        else:
+            result.missing_ticks += added[-1] - result.last_tick - len(added)
+        result.last_tick = added[-1]
+    result.journal_ticks = len(added)
+    result.ticks += len(added)
+    result.events += result.journal_events
+    result.journal = (f"{path.name}: {len(added)} ticks, {result.journal_events} events"
+                      f"{', the run end' if any(k == 'end' for k, _ in items) else ''} added "
+                      f"({cells['head'] - cells['tail']} bytes beyond the file)")
+    return out
+
+
+def _write(records: Iterable[McapRecord], result: RecoveryResult, dst: Path,
+           extra: list[tuple[str, int, bytes, int]]) -> None:
+    """The records, then ``extra`` messages (by topic), into a finished MCAP file at ``dst``
+    (temporary name, then renamed)."""
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
     try:
         with open(tmp, "xb") as out:
-            _write_records(out, records, result)
+            _write_records(out, records, result, extra)
             out.flush()
             os.fsync(out.fileno())
         os.replace(tmp, dst)
@@ -259,10 +359,12 @@ def _write(records: Iterable[McapRecord], result: RecoveryResult, dst: Path) -> 
             tmp.unlink()
 
 
-def _write_records(out, records: Iterable[McapRecord], result: RecoveryResult) -> None:
+def _write_records(out, records: Iterable[McapRecord], result: RecoveryResult,
+                   extra: list[tuple[str, int, bytes, int]]) -> None:
     writer = Writer(out, compression=CompressionType.ZSTD)
     schema_ids: dict[int, int] = {}
     channel_ids: dict[int, int] = {}
+    by_topic: dict[str, int] = {}
     started = False
     for record in records:
         if isinstance(record, Header):
@@ -283,6 +385,7 @@ def _write_records(out, records: Iterable[McapRecord], result: RecoveryResult) -
                     topic=record.topic, message_encoding=record.message_encoding,
                     schema_id=schema_ids.get(record.schema_id, 0),
                     metadata=dict(record.metadata))
+                by_topic.setdefault(record.topic, channel_ids[record.id])
         elif isinstance(record, Message):
             channel = channel_ids.get(record.channel_id)
             if channel is None:
@@ -296,6 +399,12 @@ def _write_records(out, records: Iterable[McapRecord], result: RecoveryResult) -
         elif isinstance(record, Attachment):
             writer.add_attachment(record.create_time, record.log_time, record.name,
                                   record.media_type, record.data)
+    for topic, log_ns, data, sequence in extra:
+        channel = by_topic.get(topic)
+        if channel is None:
+            result.skipped.append(f"journal message on {topic}: the file has no such channel")
+            continue
+        writer.add_message(channel, log_ns, data, log_ns, sequence=sequence)
     if not result.intact:
         writer.add_metadata(RECOVERY_METADATA_NAME, {
             "source": result.source.name,
@@ -309,5 +418,7 @@ def _write_records(out, records: Iterable[McapRecord], result: RecoveryResult) -
             "bytes_used": str(result.bytes_used),
             "bytes_total": str(result.bytes_total),
             "stopped": result.stopped,
+            "journal": result.journal,
+            "journal_ticks": str(result.journal_ticks),
         })
     writer.finish()

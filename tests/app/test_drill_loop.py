@@ -173,12 +173,21 @@ def _relative(obj, start_ns: int):
     return obj
 
 
-def test_a_recorded_run_hands_its_drilling_rows_over_in_blocks(tmp_path, monkeypatch):
+@pytest.mark.parametrize("budget", [None, 50])
+def test_a_recorded_run_hands_its_drilling_rows_over_in_blocks(tmp_path, monkeypatch, budget):
     """The CLI's run (recording, live summary, progress) with the drilling ticks compiled and
     their rows in blocks records what the tick-by-tick run records: every /tick row (its
-    compute time aside), /tf, /scene and /events message, the same summary and progress."""
+    compute time aside), /tf, /scene and /events message, the same summary and progress.
+    With the recorder's default budget (2,000 ticks) each call's rows leave after it, in
+    blocks of up to 256 ticks; with a budget of 50 the calls send blocks of 25 as they run."""
+    from dentibot.app import runner as runner_module
     from dentibot.control import kinematics_kernels as kk
     from dentibot.sim import canal_kernels as ck
+
+    if budget is not None:
+        opened = runner_module.open_recorder
+        monkeypatch.setattr(runner_module, "open_recorder",
+                            lambda *a, **kw: opened(*a, max_queue=budget, **kw))
 
     # the kernels the rows' numbers take, compiled at import for the types the runs pass
     kernels = (kk.tool_euler_deg, kk.euler_xyz_deg, ck.red_area)
@@ -188,10 +197,13 @@ def test_a_recorded_run_hands_its_drilling_rows_over_in_blocks(tmp_path, monkeyp
     again, progress_again, messages_again, none, _, _ = _recorded(tmp_path, False, monkeypatch)
     assert [list(k.signatures) for k in kernels] == before
     assert not none and sum(blocks) > 2000          # most of the drilling went in blocks
-    # calls of more ticks than half the recorder's budget (25), whose blocks reached the
-    # recorder as they were computed: never more than its budget at risk
-    assert relayed > 25 and max(blocks) > 25
-    assert at_risk <= 50
+    assert max(blocks) > 25
+    if budget is None:
+        assert relayed == 0 and 25 < at_risk <= 2000
+    else:
+        # calls of more ticks than half the recorder's budget (25), whose blocks reached
+        # the recorder as they were computed: never more than its budget out of the file
+        assert relayed > 25 and at_risk <= budget
     assert summary.reversals > 0 and summary == again
     assert progress == progress_again
     assert {"/tick", "/tf", "/scene", "/events"} <= {topic for topic, _, _ in messages}

@@ -50,7 +50,7 @@ def _relay(rec: RecorderProcess, rows: np.ndarray, ctl: np.ndarray, every: int =
 
 
 def test_each_group_reaches_the_recording_with_its_compute_time(tmp_path):
-    rec = RecorderProcess(tmp_path / "r.mcap", dict(META), validate=False)
+    rec = RecorderProcess(tmp_path / "r.mcap", dict(META), validate=False, max_queue=50)
     rows = np.zeros((256, WIDTH))
     ctl = np.zeros(rk.CTL_SIZE, dtype=np.int64)
     wire, relay = _relay(rec, rows, ctl)
@@ -72,7 +72,8 @@ def test_each_group_reaches_the_recording_with_its_compute_time(tmp_path):
 
 
 def test_a_group_the_recorder_makes_no_room_for_stops_the_call_before_its_next_tick(tmp_path):
-    rec = RecorderProcess(tmp_path / "s.mcap", dict(META), validate=False, max_wait_s=0.2)
+    rec = RecorderProcess(tmp_path / "s.mcap", dict(META), validate=False, max_wait_s=0.2,
+                          max_queue=50)
     rows = np.zeros((256, WIDTH))
     ctl = np.zeros(rk.CTL_SIZE, dtype=np.int64)
     wire, relay = _relay(rec, rows, ctl)

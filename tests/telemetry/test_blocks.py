@@ -191,7 +191,7 @@ def test_a_block_that_finds_no_room_is_dropped_loudly():
 
 def test_the_recorder_process_takes_blocks(tmp_path):
     path = tmp_path / "blocks.mcap"
-    rec = RecorderProcess(path, META)
+    rec = RecorderProcess(path, META, max_queue=50)
     for k0 in range(0, 400, 25):
         rec.record_block(_block(k0, 25, k0))
     rec.record_block(_block(400, 120, 9))               # larger than the budget: in parts

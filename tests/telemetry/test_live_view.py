@@ -116,13 +116,60 @@ def test_nothing_is_encoded_for_channels_nobody_watches():
         assert live.rows_queued == 50 and live.messages_sent == 1        # the first /run
 
 
+def test_a_block_nobody_watches_is_counted_not_queued_and_a_watched_one_is_sent():
+    """A lock-step run hands rows over faster than the publisher takes them: with no viewer
+    on the rows' topics a block is only counted (nothing would be sent); a viewer on /tick
+    receives each row of the block."""
+    import numpy as np
+
+    from dentibot.telemetry.blocks import WIDTH, TickBlock
+
+    block = TickBlock(np.arange(8 * WIDTH, dtype=float).reshape(8, WIDTH), 100, 0.002,
+                      "4:drill", "treating.drilling.feeding", 16.0, 0, (180.0, 0.0, 90.0))
+    live = LiveView(META, port=0, poll_s=5.0)
+    client = None
+    try:
+        time.sleep(0.05)                          # the publisher asleep: the queue shows all
+        live.record_block(block)
+        assert live.rows_queued == 8 and live.queue_depth == 0
+        live.event("note", "after the block")
+        assert live._queue[-1][1]["tick"] == 107 and live._queue[-1][1]["t"] == 107 * 0.002
+        client = FoxgloveWsClient("127.0.0.1", live.port)
+        client.receive()
+        subs = _subscribe(client, client.advertised(TOPICS), ["/tick"])
+        deadline = time.monotonic() + 10
+        while not live._channels["/tick"].has_sinks():
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        live.record_block(block.part(0, 3))
+        assert live.rows_queued == 11
+        live._wake.set()
+        got = _collect(client, subs, lambda got: len(got) == 3)
+        assert [m["tick"] for _t, _l, m in got] == [100, 101, 102]
+        assert [m["q_deg"] for _t, _l, m in got] == [r["q_deg"] for r in block.rows(0, 3)]
+    finally:
+        if client is not None:
+            client.close()
+        live.close()
+
+
 def test_a_full_queue_drops_the_oldest_and_counts():
     with LiveView(META, port=0, max_queue=10, poll_s=5.0) as live:
-        # the publisher sleeps up to poll_s between drains: fill the queue meanwhile
-        time.sleep(0.05)
-        for i in range(25):
-            live.record(ramp_row(i))
-        assert live.items_dropped >= 10 and live.queue_depth <= 10
+        client = FoxgloveWsClient("127.0.0.1", live.port)      # a viewer: rows are queued
+        try:
+            client.receive()
+            _subscribe(client, client.advertised(TOPICS), ["/tick"])
+            deadline = time.monotonic() + 10
+            while not live._channels["/tick"].has_sinks():
+                assert time.monotonic() < deadline
+                time.sleep(0.01)
+            # the publisher sleeps up to poll_s between drains: fill the queue meanwhile
+            time.sleep(0.05)
+            for i in range(25):
+                live.record(ramp_row(i))
+            assert live.items_dropped >= 10 and live.queue_depth <= 10
+        finally:
+            client.close()
 
 
 def test_a_taken_port_is_a_typed_error():

@@ -1,4 +1,4 @@
-"""The recorder process's pipe from compiled code: blocks sent by a compiled loop reach the
+"""The recorder process's journal from compiled code: blocks sent by a compiled loop reach the
 recording as record_block's, within the same budget, and its failures are raised as
 record_block raises them."""
 
@@ -38,11 +38,11 @@ def _block(rows: np.ndarray, k0: int) -> TickBlock:
 def _send(wire, rows_u8, starts, k0):
     """A compiled loop's sends: rows ``starts[j]`` to ``starts[j + 1]`` as block ``j``, until
     one is not sent or a report stops it; how many were sent."""
-    st, msg, head, k0_at, n_at, incoming, flush = wire
+    st, hdr, ring, msg, head, k0_at, n_at = wire
     sent = 0
     for j in range(starts.shape[0] - 1):
-        if not send_block(st, msg, head, k0_at, n_at, rows_u8, starts[j], starts[j + 1],
-                          k0 + starts[j], incoming, flush):
+        if not send_block(st, hdr, ring, msg, head, k0_at, n_at, rows_u8, starts[j],
+                          starts[j + 1], k0 + starts[j]):
             break
         sent += 1
         if st[STATUS] != OK:
@@ -68,7 +68,7 @@ def test_blocks_sent_by_compiled_code_make_the_recording_record_block_makes(tmp_
     paths = []
     for wired in (True, False):
         path = tmp_path / f"w{wired}.mcap"
-        rec = RecorderProcess(path, dict(META), validate=False)
+        rec = RecorderProcess(path, dict(META), validate=False, max_queue=50)
         if wired:
             wire = Wire(rec, WIDTH, 256)
             assert _send(wire.begin(*BLOCK), rows.view(np.uint8), starts, 0) == 6
@@ -104,13 +104,14 @@ def test_what_was_handed_over_before_goes_first(tmp_path):
 
 
 def test_a_stopped_recorder_process_is_an_overflow_of_the_block_that_found_no_room(tmp_path):
-    rec = RecorderProcess(tmp_path / "stop.mcap", dict(META), validate=False, max_wait_s=0.2)
+    rec = RecorderProcess(tmp_path / "stop.mcap", dict(META), validate=False, max_wait_s=0.2,
+                          max_queue=50)
     wire = Wire(rec, WIDTH, 256)
     rows = _rows(100)
     args = wire.begin(*BLOCK)
     os.kill(rec.pid, signal.SIGSTOP)
     try:
-        # two blocks fill the budget of 50; the third waits 0.2 s for a flush, in vain
+        # two blocks fill the budget of 50; the third waits 0.2 s for the file, in vain
         sent = _send(args, rows.view(np.uint8), np.array([0, 25, 50, 75]), 0)
         assert sent == 2 and wire.st[STATUS] == NO_ROOM
         with pytest.raises(TelemetryOverflow, match="made no room in 0.2 s") as err:
