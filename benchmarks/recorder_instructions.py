@@ -1,7 +1,7 @@
 """The recorder's writer counted in instructions, not seconds: what it costs per tick to write
 the main job's drilling blocks, repeatable on a shared machine.
 
-    .venv/bin/python benchmarks/recorder_instructions.py [--blocks 24] [--json FILE]
+    .venv/bin/python benchmarks/recorder_instructions.py [--blocks 40] [--json FILE]
 
 Timings of the recorder's process swing by 1.5x from one minute to the next here, more than
 most changes to the writer move them. valgrind's callgrind counts the instructions a process
@@ -10,10 +10,11 @@ runs, whatever else the machine does. The benchmark:
 1. runs the main job (``protocols/root-canal.yaml``) on the built-in simulator as ``dentibot
    run`` does and keeps the drill step's blocks of compiled ticks, as the runner hands them
    to its readers (:class:`~dentibot.telemetry.blocks.TickBlock`, in their wire form);
-2. writes ``--blocks`` of them (from the 21st on, the drilling well under way), in parts of
-   25 ticks as the recorder's process receives them, into a
-   :class:`~dentibot.telemetry.recorder.McapRecorder` that writes in the caller's thread (the
-   recorder process's set-up) with the run's 3D view, under callgrind, twice: once stopping
+2. writes ``--blocks`` of them (from the 21st on, the drilling well under way), whole (up to
+   256 ticks) as the recorder's process receives them through its journal, into a
+   :class:`~dentibot.telemetry.recorder.McapRecorder` that writes in the caller's thread with
+   the recorder process's budget (:data:`~dentibot.telemetry.recorder_process.JOURNAL_S` at
+   500 Hz) and the run's 3D view, under callgrind, twice: once stopping
    after a warm-up of 40 parts (imports, compiled kernels loaded, first chunks), once going
    on through all of them. The difference, over the ticks after the warm-up, is the writer's
    instructions per tick;
@@ -47,10 +48,11 @@ import real_tick
 
 from dentibot.app.runner import ProtocolRunner
 from dentibot.telemetry.blocks import TickBlock
+from dentibot.telemetry.recorder_process import JOURNAL_S
 
-WARM_PARTS = 40               # parts written before the counted ones (in both runs)
+WARM_PARTS = 10               # parts written before the counted ones (in both runs)
 FIRST_BLOCK = 20              # the drill step's blocks from here on (its start skipped)
-PART_TICKS = 25               # a block as the recorder's process receives it (half a budget)
+PART_TICKS = 256              # a block as the recorder's process receives it (a whole call's)
 #: where a C function's instructions are counted: the first pattern its name matches
 AREAS = (("interpreter", (r"ceval\.c|dictobject|obmalloc|object\.c|typeobject|longobject|"
                           r"listobject|tupleobject|frame\.c|unicodeobject|abstract\.c|call\.c")),
@@ -102,7 +104,8 @@ def write_parts(path: Path, blocks: int, counted: bool, out: Path) -> int:
     parts = _parts(path, blocks)
     todo = parts if counted else parts[:WARM_PARTS]
     rec = McapRecorder(out, {"rate_hz": 500.0}, writer_thread=False, validate=False,
-                       view=FoxgloveView(file_length_mm=25.0), overwrite=True)
+                       view=FoxgloveView(file_length_mm=25.0), overwrite=True,
+                       max_queue=round(JOURNAL_S * 500.0))
     for p in todo:
         if rec.rows_queued - rec._settled + len(p) > rec.budget:   # as the recorder's
             rec._wait_for_room(None, len(p))      # process waits for room before a block
@@ -131,7 +134,7 @@ def _callgrind(args: list[str], out: Path) -> Counter:
     return by_fn
 
 
-def measure(blocks: int = 24) -> dict:
+def measure(blocks: int = 40) -> dict:
     """Instructions per tick of the writer on ``blocks`` drilling blocks, by area."""
     if shutil.which("valgrind") is None or shutil.which("callgrind_annotate") is None:
         raise RuntimeError("valgrind (callgrind) is not installed")
@@ -169,7 +172,7 @@ def print_report(r: dict) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--blocks", type=int, default=24)
+    ap.add_argument("--blocks", type=int, default=40)
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--replay", type=Path, help=argparse.SUPPRESS)
     ap.add_argument("--out", type=Path, help=argparse.SUPPRESS)

@@ -143,6 +143,13 @@ class TickBlock:
             k += 1
         return out
 
+    def scene_row(self, i: int) -> dict[str, Any]:
+        """Row ``i``'s fields a 3D scene is drawn from (``t``, ``tick``, ``wrench_h``,
+        ``phantom_pose``), as :meth:`rows` gives them, without the others."""
+        k, r = self.k0 + i, self.cols[i]
+        return {"t": k * self.ts, "tick": k, "wrench_h": r[_WH:_WH + 6].tolist(),
+                "phantom_pose": [*r[_PH:_PH + 3].tolist(), *self.phantom_euler]}
+
     def tick_cdr(self, start: int = 0, stop: int | None = None) -> list[bytes]:
         """The ``/tick`` messages (CDR) of rows ``start`` to ``stop``: the bytes of
         ``Codec(TICK_FIELDS).encode(row)`` for each row of :meth:`rows`, written by copying

@@ -1,7 +1,7 @@
 """File descriptors and the clock from compiled code running without the interpreter lock
 (numba intrinsics, compiled into their caller):
 
-- :func:`fd_write` / :func:`fd_read`: one ``write`` / ``read`` of bytes of an array;
+- :func:`fd_write`: one ``write`` of bytes of an array;
 - :func:`fd_poll`: ``poll`` of one descriptor for reading, with a timeout;
 - :func:`errno`: the calling thread's ``errno`` (after a call returned -1);
 - :func:`now_ns`: the monotonic clock (``CLOCK_MONOTONIC``, the one ``time.monotonic_ns``
@@ -21,7 +21,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-__all__ = ["CLOCK_MONOTONIC", "EINTR", "errno", "fd_poll", "fd_read", "fd_write", "now_ns"]
+__all__ = ["CLOCK_MONOTONIC", "EINTR", "errno", "fd_poll", "fd_write", "now_ns"]
 
 #: Linux's ``CLOCK_MONOTONIC`` (``time.CLOCK_MONOTONIC``)
 CLOCK_MONOTONIC = 1
@@ -31,7 +31,7 @@ EINTR = 4
 POLLIN = 0x001
 _I8P = ir.IntType(8).as_pointer()
 _I16, _I32, _I64 = ir.IntType(16), ir.IntType(32), ir.IntType(64)
-_IO = ir.FunctionType(_I64, [_I32, _I8P, _I64])     # ssize_t read/write(int, void *, size_t)
+_IO = ir.FunctionType(_I64, [_I32, _I8P, _I64])     # ssize_t write(int, void *, size_t)
 
 
 def _io(name: str):
@@ -53,9 +53,6 @@ def _io(name: str):
 #: ``fd_write(fd, arr, start, size)``: ``write`` the ``size`` bytes of ``arr``'s data from
 #: byte ``start``; returns what ``write`` returns (bytes written, or -1)
 fd_write = intrinsic(_io("write"))
-#: ``fd_read(fd, arr, start, size)``: ``read`` at most ``size`` bytes into ``arr``'s data
-#: from byte ``start``, blocking until there are some; returns what ``read`` returns
-fd_read = intrinsic(_io("read"))
 
 
 @intrinsic

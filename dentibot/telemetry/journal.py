@@ -98,6 +98,7 @@ class Journal:
             fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o644)
             try:
                 os.ftruncate(fd, HEADER_BYTES + capacity)
+                os.posix_fallocate(fd, 0, HEADER_BYTES + capacity)
                 os.pwrite(fd, np.array([MAGIC, capacity], dtype="<i8").tobytes(), 0)
             except OSError:
                 os.close(fd)
@@ -106,7 +107,9 @@ class Journal:
         except OSError as exc:
             tmp.unlink(missing_ok=True)
             raise TelemetryError(path, f"cannot create the journal: {exc}") from exc
-        return cls(path, fd, capacity)
+        j = cls(path, fd, capacity)
+        j.ring[::mmap.PAGESIZE] = 0               # each page's first write, now, not mid-run
+        return j
 
     @classmethod
     def open(cls, path: str | os.PathLike[str]) -> Journal:

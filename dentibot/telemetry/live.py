@@ -41,6 +41,7 @@ import orjson
 import structlog
 
 from dentibot.errors import ConfigError
+from dentibot.telemetry.blocks import TickBlock
 from dentibot.telemetry.foxglove import (
     FOXGLOVE_TOPICS,
     SCENE_TOPIC,
@@ -48,7 +49,6 @@ from dentibot.telemetry.foxglove import (
     FoxgloveView,
     as_view,
 )
-from dentibot.telemetry.blocks import TickBlock
 from dentibot.telemetry.recorder import (
     _dentibot_version,
     _finite,

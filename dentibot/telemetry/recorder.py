@@ -31,6 +31,10 @@ chunk being built:
   :class:`TelemetryOverflow`, so the caller faults the run instead of going on with a
   recording that has a hole. The queue never grows without bound and a loss is never silent.
 
+The recorder's own process (:mod:`~dentibot.telemetry.recorder_process`, what ``dentibot run``
+uses) runs this recorder with a larger budget (4 s of procedure), because what its file does
+not hold yet is kept in a journal beside it, which a crash does not lose.
+
 Readable as written. The file on disk is always a complete MCAP file: each flush writes what is
 new *and* a provisional end (DataEnd, a Footer without summary, the closing magic) with one
 ``write`` at the end of the data, and the next flush overwrites that end. What is new is the
@@ -1071,7 +1075,7 @@ class McapRecorder(RecorderBase):
             i = self._next_scene(block, start, stop)
             while i < stop:
                 self._last_log_ns = log_ns[i]
-                scene = self._view_messages(block.rows(i, i + 1)[0], tf=False)[1]
+                scene = self._view_messages(block.scene_row(i), tf=False)[1]
                 if scene is not None:
                     scenes.append((i - start, scene))
                 i = self._next_scene(block, i + 1, stop)

@@ -523,9 +523,8 @@ class RecorderProcess(RecorderBase):
         self._closed = True
         self._pending.append(("end", (status, reason,
                                       self.duration_s() if duration_s is None else duration_s)))
-        if self._dead is None:
-            self._send(raise_dead=False)          # a dead writer is reported below, once
-            self._ring()
+        self._send(raise_dead=False)              # a dead writer is reported below, once
+        self._ring()
         deadline = time.monotonic() + CLOSE_TIMEOUT_S
         while self.end is None and self._proc.is_alive() and time.monotonic() < deadline:
             self._read_acks(0.1)
@@ -621,17 +620,6 @@ class Wire:
         if status == wk.NO_ROOM:
             rec.backpressure_waits += 1
             rec._overflow({"tick": last_tick + 1}, group)
-
-
-def _read_exactly(fd: int, size: int) -> bytes:
-    parts, left = [], size
-    while left:
-        part = os.read(fd, left)
-        if not part:
-            raise EOFError
-        parts.append(part)
-        left -= len(part)
-    return b"".join(parts)
 
 
 def _release(*conns: Connection) -> None:
@@ -733,19 +721,22 @@ def _child_main(rows: Connection, acks: Connection) -> None:
         report(("dead", exc if _pickles(exc) else TelemetryError(path, repr(exc))))
 
     try:
+        busy = False
         while True:
-            if poller.poll(wait_ms):
+            if poller.poll(0 if busy else wait_ms):   # sleep only when nothing came
                 try:
                     parent_gone = not os.read(bell, 4096)   # doorbells, or the pipe closed
                 except OSError:
                     parent_gone = True
+            busy = False
             for end, message in journal.messages(done_at):
-                if dead is not None:
-                    break                        # the parent knows; wait for its close
+                busy = True
                 for kind, payload in items_of(message):
                     if kind == "end":
                         _close(rec, journal, payload, dead, report)
                         return
+                    if dead is not None:
+                        continue                 # the parent knows; wait for its close
                     try:
                         if kind == "tick":
                             rec.record(payload)
@@ -756,7 +747,6 @@ def _child_main(rows: Connection, acks: Connection) -> None:
                             rec.event(ev_kind, detail, t=t, tick=tick)
                     except TelemetryError as exc:
                         died(exc)
-                        break
                 done_at = end
             if dead is None:
                 try:

@@ -166,8 +166,8 @@ def test_a_killed_recorder_process_loses_nothing_recover_adds_the_journal(tmp_pa
     alike): 151 items made 15 batches and left row 299 waiting; the batch that row 308
     completes still goes into the journal (the control process learns of the death as it
     hands it over), and row 309 raises, saying where the 159 rows not in the file are. The
-    file alone has the first 150; the recovered file has all 309 and the event, exactly as
-    they were handed over."""
+    file alone has the first 150; the recovered file has all 309, the event and the run's end,
+    exactly as they were handed over."""
     path = tmp_path / "run.mcap"
     rec = RecorderProcess(path, dict(META), validate=False)
     rows = [real_row(i) for i in range(320)]
@@ -199,6 +199,10 @@ def test_a_killed_recorder_process_loses_nothing_recover_adds_the_journal(tmp_pa
     assert (result.ticks, result.first_tick, result.last_tick, result.missing_ticks) == \
         (309, 0, 308, 0)
     got = read_recording(result.out)
-    assert got.rows == rows[:309] and not got.complete and got.end is None
+    assert got.rows == rows[:309]
+    # the run's end, handed over by close() after the death, is in the journal too; a
+    # recovered file stays flagged incomplete
+    assert got.end == {"status": "fault", "reason": "recorder died", "duration_s": 309 / 500}
+    assert not got.complete
     assert [(e["tick"], e["detail"]) for e in got.events] == [(200, "in the journal only")]
     assert got.recovered["journal_ticks"] == "159"
