@@ -15,7 +15,7 @@ publishes it: no system call, no wake-up of the other process. The child looks e
 it finds and publishes each flush in the journal's header. Before the journal, the rows went
 through a pipe, 25 ticks at a time under a budget of 50 ticks at risk, and in lock-step time
 the control task waited for the child every 25 ticks: the recorder made the main job's
-drilling 1.9-2.4 times slower; with the journal, 1.06-1.38 (``benchmarks/real_tick.py``).
+drilling 1.7-2.5 times slower; with the journal, 1.1-1.3 (``benchmarks/real_tick.py``).
 
 What a crash can cost: nothing handed over. What the file does not hold yet is in the
 journal, which outlives the death of either process (the system keeps what a process wrote
