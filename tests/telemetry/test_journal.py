@@ -14,6 +14,7 @@ import pytest
 from numba import njit
 from telemetry_helpers import real_row
 
+from dentibot.cli import main
 from dentibot.telemetry import read_recording
 from dentibot.telemetry.blocks import WIDTH, TickBlock
 from dentibot.telemetry.journal import (
@@ -160,7 +161,7 @@ def _stop_and_kill(pid: int) -> None:
         time.sleep(0.02)
 
 
-def test_a_killed_recorder_process_loses_nothing_recover_adds_the_journal(tmp_path):
+def test_a_killed_recorder_process_loses_nothing_recover_adds_the_journal(tmp_path, capsys):
     """150 rows reach the file; the recorder's process frozen, 150 more and an event go into
     the journal only; then it is killed. Items leave in batches of 10 (rows and events
     alike): 151 items made 15 batches and left row 299 waiting; the batch that row 308
@@ -206,3 +207,8 @@ def test_a_killed_recorder_process_loses_nothing_recover_adds_the_journal(tmp_pa
     assert not got.complete
     assert [(e["tick"], e["detail"]) for e in got.events] == [(200, "in the journal only")]
     assert got.recovered["journal_ticks"] == "159"
+    # the command says what the journal added
+    assert main(["recover", str(path), "--out", str(tmp_path / "cli.mcap")]) == 0
+    out = capsys.readouterr().out
+    assert "recovered 309 ticks" in out
+    assert "journal run.mcap.journal: 159 ticks, 1 events, the run end added" in out
