@@ -29,6 +29,11 @@ loop raises its priority where permitted (``realtime_policy``), and so does ``de
 serve``; ``priority_raised`` says how the system granted it (``fifo``: SCHED_FIFO, for a
 loop that waits on the kernel timer; ``nice``; empty: not at all).
 
+``--witness`` runs the bare loop of 5. in a process of its own beside the control loop, in the
+same minutes, and counts the control loop's overruns that began within 5 ms of a stall of
+it (a wake-up 0.5 ms late or more): ``overruns_shared_with_witness``, the machine's misses
+rather than the loop's own (``witness``: its figures, ``stalls``: how many it had).
+
 Targets: 500 Hz p99 lateness <= 100 us, zero overruns over 60 s.
 """
 
@@ -46,6 +51,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import structlog
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -69,6 +75,12 @@ from dentibot.sim.world import World, WorldConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 LOOSE = Thresholds(stale_periods={"arm": 50, "ft": 50, "motor": 50, "aux": 200})
+#: a bare loop's wake-up this late is a stall of the machine (a witness's record of it)
+STALL_S = 0.0005
+#: an overrun that began this close to a stall of the witness is counted as the machine's
+SHARED_S = 0.005
+#: the witness runs this much longer than the control loop (its start-up, the loop's set-up)
+WITNESS_EXTRA_S = 5.0
 
 
 def free_port(kind=socket.SOCK_STREAM) -> int:
@@ -203,9 +215,13 @@ async def control_loop(d, world: World, clock: Clock, seconds: float) -> dict:
     late: list[float] = []
     comp: list[float] = []
 
+    overrun_at: list[float] = []
+
     def sink(row: dict) -> None:
         late.append(row["lateness_us"])
         comp.append(row["compute_us"])
+        if row["overrun"]:                 # the tick's deadline, on the monotonic clock
+            overrun_at.append(time.monotonic() - (row["lateness_us"] + row["compute_us"]) / 1e6)
 
     proc = Procedure.over(d, RuntimeConfig(period_s=clock.period_s, thresholds=LOOSE),
                           clock=clock, gravity=true_gravity_model(world), sink=sink)
@@ -231,6 +247,7 @@ async def control_loop(d, world: World, clock: Clock, seconds: float) -> dict:
     c1 = _counters(d)
     s["streams"] = {k: (c1[k] - c0[k]) if c0[k] is not None else None for k in c0}
     s.update(state=rt.state, faults=list(rt.treatment.fault_causes))
+    s["overrun_at"] = overrun_at
     return s
 
 
@@ -256,12 +273,15 @@ async def _bare_loop(rate: float, seconds: float) -> dict:
     stats = DeadlineStats(clock.period_s)
     late: list[float] = []
     ticks = max(1, round(seconds * rate))
+    stalls: list[float] = []                         # when it woke late (monotonic s)
     with realtime_policy(clock) as collect:
         clock.start()
         for k in range(ticks):
             lateness = await clock.wait_next()
             t0 = time.perf_counter()
             late.append(lateness * 1e6)
+            if lateness > STALL_S:
+                stalls.append(time.monotonic() - lateness)
             stats.add(lateness, time.perf_counter() - t0)
             collect(k)                               # in the slack, as the control loop
         stats.skipped = clock.skipped
@@ -269,6 +289,7 @@ async def _bare_loop(rate: float, seconds: float) -> dict:
     s = stats.as_dict()
     s["lateness_us_exact"] = quantiles(late)
     s["priority_raised"] = granted
+    s["stalls_at"] = stalls
     return s
 
 
@@ -281,6 +302,29 @@ def platform_floor(rate: float, seconds: float) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def _witness(rate: float, seconds: float) -> subprocess.Popen:
+    """:func:`_bare_loop` started in a fresh process now, running ``seconds``: a witness of
+    what the machine misses while the control loop runs (read with :func:`_attributed`)."""
+    return subprocess.Popen([sys.executable, __file__, "--floor", f"{rate!r}", f"{seconds!r}"],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                            text=True)
+
+
+def _attributed(loop: dict, witness: subprocess.Popen) -> dict:
+    """The witness's figures, and how many of the loop's overruns began within
+    :data:`SHARED_S` of a stall of the witness (the machine's, not the loop's)."""
+    out, _ = witness.communicate(timeout=120)
+    w = json.loads(out.strip().splitlines()[-1])
+    stalls = np.array(sorted(w.pop("stalls_at")))
+    shared = 0
+    for t in loop["overrun_at"]:
+        i = np.searchsorted(stalls, t)
+        near = stalls[max(i - 1, 0):i + 1]
+        shared += bool(near.size and np.abs(near - t).min() <= SHARED_S)
+    w["stalls"] = int(stalls.size)
+    return {"witness": w, "overruns_shared_with_witness": shared}
+
+
 def _priority_granted(clock: RealTimeClock) -> str:
     """How the control loop's priority is raised here: "fifo", "nice" or "" (not at all)."""
     with raised_priority(fifo_priority=REALTIME_FIFO_PRIORITY if clock.kernel_timer
@@ -290,7 +334,7 @@ def _priority_granted(clock: RealTimeClock) -> str:
 
 async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float = 10.0,
                      round_trip_n: int = 20, load: int = 0,
-                     floor_seconds: float | None = None) -> dict:
+                     floor_seconds: float | None = None, with_witness: bool = False) -> dict:
     ports = {"meca": free_port(), "http": free_port(), "modbus": free_port(),
              "can": free_port(), "netft": free_port(socket.SOCK_DGRAM)}
     serve = _serve(ports)  # started once, before any timing
@@ -309,8 +353,12 @@ async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float
             for rate in rates:
                 r = result["rates"][f"{rate:g}"] = {"rate_hz": rate}
                 srv0, t0 = cpu_seconds(serve.pid), time.perf_counter()
+                witness = _witness(rate, seconds + WITNESS_EXTRA_S) if with_witness else None
                 r["absolute_deadlines"] = await control_loop(
                     d, world, RealTimeClock(1.0 / rate), seconds)
+                if witness is not None:
+                    r["absolute_deadlines"].update(_attributed(r["absolute_deadlines"],
+                                                               witness))
                 r["simulator_cpu_percent"] = (100 * (cpu_seconds(serve.pid) - srv0)
                                               / (time.perf_counter() - t0))
             for rate in rates:
@@ -332,12 +380,13 @@ async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float
 
 
 def measure(seconds: float = 60.0, rates=(500.0, 1000.0), sleep_seconds: float = 10.0,
-            round_trip_n: int = 20, load: int = 0, floor_seconds: float | None = None) -> dict:
+            round_trip_n: int = 20, load: int = 0, floor_seconds: float | None = None,
+            with_witness: bool = False) -> dict:
     """Round trips, then each rate with absolute deadlines, then each with plain sleep, then
     each rate's platform floor (``floor_seconds``, default ``seconds``), with ``load``
     CPU-bound jobs running throughout."""
     return asyncio.run(main_async(seconds, rates, sleep_seconds, round_trip_n, load,
-                                  floor_seconds))
+                                  floor_seconds, with_witness))
 
 
 def print_report(r: dict) -> None:
@@ -365,6 +414,14 @@ def print_report(r: dict) -> None:
                   f"{s['host_heartbeat_gap_max_ms']:.1f} ms, F/T lost {st['ft_lost']} of "
                   f"{st['ft_received']}, CPU {s['control_cpu_percent']:.0f} %, "
                   f"state {s['state']}{' ' + '; '.join(s['faults']) if s['faults'] else ''}")
+            if "witness" in s:
+                w = s["witness"]
+                print(f"{rate:>5} Hz {'witness':>19}: the bare loop beside it, same minutes: "
+                      f"p99 {fmt(w['lateness_us_exact']['p99'], '.0f')} us, max "
+                      f"{fmt(w['lateness_us_exact']['max'], '.0f')} us, overruns "
+                      f"{w['overruns']}, {w['stalls']} stalls >= {STALL_S * 1e3:g} ms; "
+                      f"{s['overruns_shared_with_witness']} of the loop's {s['overruns']} "
+                      f"overruns began in one")
         print(f"{rate:>5} Hz simulator process CPU {res['simulator_cpu_percent']:.0f} %")
     for k, v in r["round_trips"].items():
         print(f"round trip {k:>13}: median {fmt(v['median_ms'], '.2f')} ms, max "
@@ -382,6 +439,9 @@ def main() -> None:
     ap.add_argument("--floor-seconds", type=float, default=None,
                     help="the bare loop's length (default: --seconds; 0: none)")
     ap.add_argument("--json", help="write the figures to this file")
+    ap.add_argument("--witness", action="store_true",
+                    help="run the bare loop beside the control loop, in the same minutes, "
+                         "and count the overruns that began in one of its stalls")
     ap.add_argument("--floor", nargs=2, type=float, metavar=("RATE", "SECONDS"),
                     help=argparse.SUPPRESS)         # the bare loop's own process
     args = ap.parse_args()
@@ -393,7 +453,7 @@ def main() -> None:
     logging.getLogger("can.interfaces.socketcand").setLevel(logging.ERROR)
     sleep_s = min(args.seconds, 10.0) if args.sleep_seconds is None else args.sleep_seconds
     r = measure(args.seconds, args.rates or [args.rate], sleep_s, load=args.load,
-                floor_seconds=args.floor_seconds)
+                floor_seconds=args.floor_seconds, with_witness=args.witness)
     print_report(r)
     if args.json:
         Path(args.json).write_text(json.dumps(r, indent=2))
