@@ -267,6 +267,7 @@ class RecorderProcess(RecorderBase):
             self._release()                       # the child sees its pipe close: it ends
             self._proc.join()
             raise
+        self._release.detach()                   # replaced: the journal is unmapped too
         self._release = weakref.finalize(self, _release, rows_w, acks_r, self.journal)
         rows_w.send_bytes(_JOURNAL_READY)
         os.set_blocking(rows_w.fileno(), False)   # from now on, doorbells only
