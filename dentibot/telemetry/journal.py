@@ -159,13 +159,7 @@ class Journal:
         return _messages(self._copy_out, start, head)
 
     def _copy_out(self, at: int, n: int) -> bytes:
-        cap = self.capacity
-        start = at % cap
-        first = min(n, cap - start)
-        out = self._map[HEADER_BYTES + start:HEADER_BYTES + start + first]
-        if first < n:
-            out += self._map[HEADER_BYTES:HEADER_BYTES + n - first]
-        return out
+        return _ring_bytes(self._map, self.capacity, at, n)
 
     def release(self, tail: int, settled: int, counters: list[int]) -> None:
         """Every message before byte ``tail`` is in the recording (``settled`` ticks, the
@@ -188,6 +182,17 @@ class Journal:
     def unlink(self) -> None:
         """Delete the file (every message is in the recording)."""
         self.path.unlink(missing_ok=True)
+
+
+def _ring_bytes(buf: Any, cap: int, at: int, n: int) -> bytes:
+    """``n`` bytes of the ring in ``buf`` (the journal's bytes, header first, mapped or read)
+    from byte ``at`` of the stream, wrapping at the ring's end (``cap``)."""
+    start = at % cap
+    first = min(n, cap - start)
+    out = buf[HEADER_BYTES + start:HEADER_BYTES + start + first]
+    if first < n:
+        out += buf[HEADER_BYTES:HEADER_BYTES + n - first]
+    return out
 
 
 def _messages(copy_out, start: int, head: int) -> Iterator[tuple[int, bytes]]:
@@ -216,14 +221,8 @@ def read_journal(path: str | os.PathLike[str]) -> tuple[dict[str, int], list[byt
     if len(data) < HEADER_BYTES + cap or not 0 <= head - tail <= cap:
         raise TelemetryError(path, f"a damaged journal (capacity {cap}, head {head}, tail "
                              f"{tail}, {len(data)} bytes)")
-    ring = data[HEADER_BYTES:HEADER_BYTES + cap]
-
-    def copy_out(at: int, n: int) -> bytes:
-        start = at % cap
-        return ring[start:start + n] + ring[:max(0, start + n - cap)]
-
     return ({"tail": tail, "head": head, "settled": settled},
-            [m for _, m in _messages(copy_out, tail, head)])
+            [m for _, m in _messages(lambda at, n: _ring_bytes(data, cap, at, n), tail, head)])
 
 
 class _Unpickler(pickle.Unpickler):

@@ -57,6 +57,7 @@ from dentibot.telemetry.recorder import (
     _nonfinite,
     _start_fields,
     _without_none,
+    event_message,
 )
 from dentibot.telemetry.schema import END_STATUSES, TOPICS, TelemetryError, json_schema
 
@@ -224,10 +225,14 @@ class LiveView:
         """A block of rows (:class:`~dentibot.telemetry.blocks.TickBlock`): :meth:`record` of
         each, looking once whether a viewer watches them."""
         n = len(block)
-        if not n or self._closed or self._error is not None or self._watched():
-            for row in block.rows():
-                self.record(row)
+        if self._closed or self._error is not None:
+            self.items_dropped += n
             return
+        if not n:
+            return
+        if self._watched():
+            for row in block.rows():
+                self._put(("tick", row))
         self.rows_queued += n
         self._last_t = (block.k0 + n - 1) * block.ts
         self._last_tick = block.k0 + n - 1
@@ -238,9 +243,8 @@ class LiveView:
         if self._closed or self._error is not None:
             self.items_dropped += 1
             return
-        self._put(("event", {"t": self._last_t if t is None else t,
-                             "tick": self._last_tick if tick is None else tick,
-                             "kind": kind, "detail": detail}))
+        self._put(("event", event_message(kind, detail, t, tick, self._last_t,
+                                          self._last_tick)))
 
     def close(self, status: str = "ok", reason: str = "",
               duration_s: float | None = None) -> dict[str, Any] | None:

@@ -262,6 +262,14 @@ def _nonfinite(obj: Any) -> bool:
 _U64_MAX = (1 << 64) - 1
 
 
+def event_message(kind: str, detail: str, t: Any, tick: Any, last_t: Any,
+                  last_tick: Any) -> dict[str, Any]:
+    """An ``/events`` message; ``t``/``tick`` None stand for the last row's (``last_t``,
+    ``last_tick``)."""
+    return {"t": last_t if t is None else t, "tick": last_tick if tick is None else tick,
+            "kind": kind, "detail": detail}
+
+
 def _log_time_ns(start_ns: int, t: Any, fallback: int) -> int:
     """MCAP log time (ns since the epoch, unsigned): ``start_ns`` + ``t`` (s since the run
     start); ``fallback`` when ``t`` is not a usable time."""
@@ -530,8 +538,6 @@ class McapRecorder(RecorderBase):
         #: most ticks handed over and not yet flushed (queued + in the unfinished chunk)
         self.budget = max_queue if max_queue is not None else \
             max(1, math.floor(max_at_risk_s * (rate or DEFAULT_RATE_HZ) + 1e-9))
-        #: the writer finishes its chunk at least every this many ticks
-        self.flush_ticks = max(1, self.budget // 2)
         self.flush_interval_s = flush_interval_s
         self.max_wait_s = float(max_wait_s)
         self.poll_s = poll_s
@@ -717,16 +723,19 @@ class McapRecorder(RecorderBase):
         if self._error is not None:
             self._raise_dead()
 
+    @property
+    def flush_ticks(self) -> int:
+        """The writer finishes its chunk at least every this many ticks: half the budget."""
+        return max(1, self.budget // 2)
+
     def event(self, kind: str, detail: str = "", *, t: float | None = None,
               tick: int | None = None) -> None:
         """Queue an ``/events`` message; ``t``/``tick`` default to the last recorded row's.
         Never waits: events are few and ride along with the ticks' budget."""
         if self._error is not None or self._closed:
             self._raise_dead()
-        self._queue.append(("event", {
-            "t": self._last_t if t is None else t,
-            "tick": self._last_tick if tick is None else tick,
-            "kind": kind, "detail": detail}))
+        self._queue.append(("event", event_message(kind, detail, t, tick, self._last_t,
+                                                   self._last_tick)))
         self.events_queued += 1
         if self._thread is None:
             self._write_now()

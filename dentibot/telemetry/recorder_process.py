@@ -681,8 +681,7 @@ def _child_main(rows: Connection, acks: Connection) -> None:
 
     def flushed(rec: McapRecorder) -> None:
         if journal is not None:
-            journal.release(done_at, rec._settled,
-                            [getattr(rec, n) for n in CHILD_COUNTERS])
+            journal.release(done_at, rec._settled, list(_counters(rec).values()))
             if journal.hdr[WAITING]:             # the control process waits for room
                 journal.hdr[WAITING] = 0
                 try:
@@ -699,7 +698,7 @@ def _child_main(rows: Connection, acks: Connection) -> None:
         report(("error", exc if _pickles(exc) else TelemetryError(path, repr(exc))))
         return
     budget = _journal_budget(rec, options, journal_s)
-    rec.budget, rec.flush_ticks = budget, max(1, budget // 2)
+    rec.budget = budget                          # its flush_ticks follow: half of it
     report(("ready", rec.metadata, budget, rec.period_s, _capacity(budget)))
     try:
         if rows.recv_bytes() != _JOURNAL_READY:
@@ -759,10 +758,8 @@ def _child_main(rows: Connection, acks: Connection) -> None:
                 if dead is None and rec.error is None:
                     journal.unlink()             # all of it is in the file
                 return
-    except _Terminated:                           # ending with the parent (daemon): the
-        rec.close_unfinished()                    # journal keeps what the file lacks
-    except OSError:                               # the parent is gone mid-report
-        rec.close_unfinished()
+    except (_Terminated, OSError):                # ending with the parent (daemon), or it is
+        rec.close_unfinished()                    # gone mid-report: the journal keeps the rest
 
 
 def _close(rec: McapRecorder, journal: Journal, payload: tuple, dead: TelemetryError | None,

@@ -52,7 +52,7 @@ from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 from dentibot.telemetry.cdr import CDR_LE, TICK_CODEC, CdrError
 from dentibot.telemetry.journal import items_of, journal_path, read_journal
 from dentibot.telemetry.reader import RECOVERY_METADATA_NAME
-from dentibot.telemetry.recorder import _dumps, _log_time_ns, _without_none
+from dentibot.telemetry.recorder import _dumps, _log_time_ns, _without_none, event_message
 from dentibot.telemetry.schema import TelemetryError
 
 __all__ = ["RecoveryResult", "default_output", "recover_recording"]
@@ -312,8 +312,7 @@ def _from_journal(path: Path, result: RecoveryResult) -> list[tuple[str, int, by
             last = tick
         if kind == "event":
             ev_kind, detail, t, tick = payload
-            ev = {"t": last_t if t is None else t, "tick": last if tick is None else tick,
-                  "kind": ev_kind, "detail": detail}
+            ev = event_message(ev_kind, detail, t, tick, last_t, last)
             if (ev["tick"], ev_kind, detail) in result._events:
                 continue
             out.append(("/events", _log_time_ns(start, ev["t"], last_ns),
