@@ -16,12 +16,7 @@ from dentibot.app.runner import served_world
 from dentibot.cli.common import user_errors
 from dentibot.io.devices import devices_yaml
 from dentibot.protocol.schema import DEFAULT_WORLD, WORLDS
-from dentibot.runtime.clock import (
-    REALTIME_SWITCH_INTERVAL_S,
-    SIMULATOR_FIFO_PRIORITY,
-    raised_priority,
-    switch_interval,
-)
+from dentibot.runtime.clock import SIMULATOR_FIFO_PRIORITY, raised_priority
 from dentibot.sim.serve import ServePorts, VirtualDentiBot
 
 
@@ -58,11 +53,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     # (else at a raised nice value); the threads it starts (the CAN bus's receivers) inherit
     # the policy, so none of them is preempted by an ordinary job while it holds the
     # interpreter lock. Measured: the F/T stream went 20.3 ms stale at nice -10 under one
-    # CPU-bound job beside the control loop. The lock passes between its threads as in a
-    # real-time control loop (within REALTIME_SWITCH_INTERVAL_S of a request).
+    # CPU-bound job beside the control loop.
     with contextlib.suppress(KeyboardInterrupt), \
-            raised_priority(fifo_priority=SIMULATOR_FIFO_PRIORITY, threads_inherit=True), \
-            switch_interval(REALTIME_SWITCH_INTERVAL_S):
+            raised_priority(fifo_priority=SIMULATOR_FIFO_PRIORITY, threads_inherit=True):
         asyncio.run(_serve(args))
     return 0
 

@@ -24,7 +24,6 @@ import contextlib
 import gc
 import math
 import os
-import sys
 import threading
 import time
 from collections.abc import Awaitable, Callable
@@ -321,12 +320,6 @@ REALTIME_FIFO_PRIORITY = 10
 #: wire self-test's simulators): ahead of every ordinary job, as the hardware they stand for
 #: never stalls, and one below a control loop, whose deadlines come first on a shared machine
 SIMULATOR_FIFO_PRIORITY = REALTIME_FIFO_PRIORITY - 1
-#: The interpreter's switch interval while a real-time loop runs: the longest a thread that
-#: holds the interpreter lock keeps it once another asks (Python's default is 5 ms). The
-#: device readers' threads hand frames over in batches; with the default, the control task,
-#: due at its deadline, waited up to milliseconds behind a batch of a reader that had fallen
-#: behind (ticks of 1-2.5 ms, 10x their usual compute, a few times a minute)
-REALTIME_SWITCH_INTERVAL_S = 0.0002
 
 
 @contextlib.contextmanager
@@ -437,24 +430,11 @@ def others_raised(nice: int = REALTIME_NICE, fifo_priority: int | None = None):
 
 
 @contextlib.contextmanager
-def switch_interval(seconds: float):
-    """The interpreter's switch interval (``sys.setswitchinterval``) set to ``seconds`` for
-    the block, restored after."""
-    was = sys.getswitchinterval()
-    sys.setswitchinterval(seconds)
-    try:
-        yield
-    finally:
-        sys.setswitchinterval(was)
-
-
-@contextlib.contextmanager
 def realtime_policy(clock: Clock):
     """The control loop's policy under ``clock``. In real time: the thread's priority raised
     (:func:`raised_priority`: SCHED_FIFO when the clock waits on the kernel timer, else a
     nice value), the process's other threads raised with it (:func:`others_raised`: to its
-    real-time priority when it has one, else to the nice value), the interpreter lock handed
-    over within :data:`REALTIME_SWITCH_INTERVAL_S` of a request, and the garbage collector
+    real-time priority when it has one, else to the nice value), and the garbage collector
     kept out of ticks. Yields
     ``collect(n)`` to call in the slack after tick ``n``.
 
@@ -478,8 +458,7 @@ def realtime_policy(clock: Clock):
     try:
         fifo = REALTIME_FIFO_PRIORITY if clock.kernel_timer else None
         with raised_priority(fifo_priority=fifo) as how, \
-                others_raised(fifo_priority=fifo if how == "fifo" else None), \
-                switch_interval(REALTIME_SWITCH_INTERVAL_S):
+                others_raised(fifo_priority=fifo if how == "fifo" else None):
             yield collect
     finally:
         gc.unfreeze()
