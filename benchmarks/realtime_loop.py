@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/realtime_loop.py [--seconds 60] [--rate 500 | --rates 500 1000]
                                                  [--sleep-seconds 10] [--load N] [--json FILE]
+                                                 [--witness] [--witness-compute-us US]
 
 1. Starts ``dentibot sim serve`` in a child process (loopback, free ports), connects the four
    real drivers (Meca500 TCP, Net F/T UDP, EPOS4 via socketcand, Modbus TCP).
@@ -33,6 +34,14 @@ loop that waits on the kernel timer; ``nice``; empty: not at all).
 same minutes, and counts the control loop's overruns that began within 5 ms of a stall of
 it (a wake-up 0.5 ms late or more): ``overruns_shared_with_witness``, the machine's misses
 rather than the loop's own (``witness``: its figures, ``stalls``: how many it had).
+``--witness-compute-us US`` gives the witness US of pure Python arithmetic to do in every
+tick (calibrated at its start: the fastest of 50 timed runs), like the control loop's own
+compute but with no device, no other thread and no other work on its event loop. A bare
+loop only shows the stalls that take the whole machine away; a loop that computes also
+meets the times the machine runs it slower (``slow_ticks``: ticks whose arithmetic took
+3 times its calibrated time or more, with ``slow_ticks_top``: the longest, wall and thread
+CPU us). Its overruns are what this machine does to any loop with that much compute per
+tick.
 
 Targets: 500 Hz p99 lateness <= 100 us, zero overruns over 60 s.
 """
@@ -43,6 +52,7 @@ import argparse
 import asyncio
 import json
 import logging
+import math
 import os
 import socket
 import statistics
@@ -81,6 +91,8 @@ STALL_S = 0.0005
 SHARED_S = 0.005
 #: the witness runs this much longer than the control loop (its start-up, the loop's set-up)
 WITNESS_EXTRA_S = 5.0
+#: a witness's tick whose arithmetic took this many times its calibrated time ran slowed
+SLOW_FACTOR = 3.0
 
 
 def free_port(kind=socket.SOCK_STREAM) -> int:
@@ -265,24 +277,53 @@ def _load_jobs(n: int) -> list[subprocess.Popen]:
     return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
 
 
-async def _bare_loop(rate: float, seconds: float) -> dict:
-    """A loop that only waits for its deadlines: :class:`RealTimeClock` at ``rate``, under
-    the control loop's policy, for ``seconds``; its :class:`DeadlineStats` and exact lateness
-    quantiles."""
+def _arithmetic(n: int) -> float:
+    """``n`` steps of pure Python arithmetic: a witness's compute."""
+    x = 0.0
+    for i in range(n):
+        x += i * 0.5
+    return x
+
+
+def _steps_for(work_us: float) -> int:
+    """Steps of :func:`_arithmetic` that take ``work_us`` on this machine at its fastest
+    (the quickest of 50 timed runs: a loaded machine only slows a run down)."""
+    if work_us <= 0:
+        return 0
+    probe = 10_000
+    best = math.inf
+    for _ in range(50):
+        t0 = time.perf_counter()
+        _arithmetic(probe)
+        best = min(best, time.perf_counter() - t0)
+    return max(1, round(probe * work_us * 1e-6 / best))
+
+
+async def _bare_loop(rate: float, seconds: float, work_us: float = 0.0) -> dict:
+    """A loop that only waits for its deadlines (and does ``work_us`` of arithmetic in each
+    tick): :class:`RealTimeClock` at ``rate``, under the control loop's policy, for
+    ``seconds``; its :class:`DeadlineStats`, exact lateness quantiles and the ticks its
+    arithmetic took :data:`SLOW_FACTOR` times its calibrated time or more."""
+    steps = _steps_for(work_us)
     clock = RealTimeClock(1.0 / rate)
     stats = DeadlineStats(clock.period_s)
     late: list[float] = []
     ticks = max(1, round(seconds * rate))
     stalls: list[float] = []                         # when it woke late (monotonic s)
+    slow: list[tuple[float, float]] = []             # (wall us, thread CPU us)
     with realtime_policy(clock) as collect:
         clock.start()
         for k in range(ticks):
             lateness = await clock.wait_next()
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             late.append(lateness * 1e6)
             if lateness > STALL_S:
                 stalls.append(time.monotonic() - lateness)
-            stats.add(lateness, time.perf_counter() - t0)
+            _arithmetic(steps)
+            took = time.perf_counter() - t0
+            if steps and took >= SLOW_FACTOR * work_us * 1e-6:
+                slow.append((took * 1e6, (time.thread_time() - c0) * 1e6))
+            stats.add(lateness, took)
             collect(k)                               # in the slack, as the control loop
         stats.skipped = clock.skipped
         granted = _priority_granted(clock)
@@ -290,6 +331,9 @@ async def _bare_loop(rate: float, seconds: float) -> dict:
     s["lateness_us_exact"] = quantiles(late)
     s["priority_raised"] = granted
     s["stalls_at"] = stalls
+    s["work_us"] = work_us
+    s["slow_ticks"] = len(slow)
+    s["slow_ticks_top"] = [[round(w), round(c)] for w, c in sorted(slow)[-5:]]
     return s
 
 
@@ -302,10 +346,12 @@ def platform_floor(rate: float, seconds: float) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def _witness(rate: float, seconds: float) -> subprocess.Popen:
-    """:func:`_bare_loop` started in a fresh process now, running ``seconds``: a witness of
-    what the machine misses while the control loop runs (read with :func:`_attributed`)."""
-    return subprocess.Popen([sys.executable, __file__, "--floor", f"{rate!r}", f"{seconds!r}"],
+def _witness(rate: float, seconds: float, work_us: float = 0.0) -> subprocess.Popen:
+    """:func:`_bare_loop` started in a fresh process now, running ``seconds`` with
+    ``work_us`` of arithmetic per tick: a witness of what the machine does to a loop while
+    the control loop runs (read with :func:`_attributed`)."""
+    return subprocess.Popen([sys.executable, __file__, "--floor", f"{rate!r}", f"{seconds!r}",
+                             "--floor-work-us", f"{work_us!r}"],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
                             text=True)
 
@@ -334,7 +380,8 @@ def _priority_granted(clock: RealTimeClock) -> str:
 
 async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float = 10.0,
                      round_trip_n: int = 20, load: int = 0,
-                     floor_seconds: float | None = None, with_witness: bool = False) -> dict:
+                     floor_seconds: float | None = None, with_witness: bool = False,
+                     witness_work_us: float = 0.0) -> dict:
     ports = {"meca": free_port(), "http": free_port(), "modbus": free_port(),
              "can": free_port(), "netft": free_port(socket.SOCK_DGRAM)}
     serve = _serve(ports)  # started once, before any timing
@@ -353,7 +400,8 @@ async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float
             for rate in rates:
                 r = result["rates"][f"{rate:g}"] = {"rate_hz": rate}
                 srv0, t0 = cpu_seconds(serve.pid), time.perf_counter()
-                witness = _witness(rate, seconds + WITNESS_EXTRA_S) if with_witness else None
+                witness = (_witness(rate, seconds + WITNESS_EXTRA_S, witness_work_us)
+                           if with_witness else None)
                 r["absolute_deadlines"] = await control_loop(
                     d, world, RealTimeClock(1.0 / rate), seconds)
                 if witness is not None:
@@ -381,12 +429,12 @@ async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float
 
 def measure(seconds: float = 60.0, rates=(500.0, 1000.0), sleep_seconds: float = 10.0,
             round_trip_n: int = 20, load: int = 0, floor_seconds: float | None = None,
-            with_witness: bool = False) -> dict:
+            with_witness: bool = False, witness_work_us: float = 0.0) -> dict:
     """Round trips, then each rate with absolute deadlines, then each with plain sleep, then
     each rate's platform floor (``floor_seconds``, default ``seconds``), with ``load``
     CPU-bound jobs running throughout."""
     return asyncio.run(main_async(seconds, rates, sleep_seconds, round_trip_n, load,
-                                  floor_seconds, with_witness))
+                                  floor_seconds, with_witness, witness_work_us))
 
 
 def print_report(r: dict) -> None:
@@ -416,7 +464,10 @@ def print_report(r: dict) -> None:
                   f"state {s['state']}{' ' + '; '.join(s['faults']) if s['faults'] else ''}")
             if "witness" in s:
                 w = s["witness"]
-                print(f"{rate:>5} Hz {'witness':>19}: the bare loop beside it, same minutes: "
+                work = (f"with {w['work_us']:g} us of arithmetic per tick (mean compute "
+                        f"{w['compute_us_mean']:.0f} us, {w['slow_ticks']} ticks slowed "
+                        f">= {SLOW_FACTOR:g}x)" if w.get("work_us") else "bare")
+                print(f"{rate:>5} Hz {'witness':>19}: a loop beside it, same minutes, {work}: "
                       f"p99 {fmt(w['lateness_us_exact']['p99'], '.0f')} us, max "
                       f"{fmt(w['lateness_us_exact']['max'], '.0f')} us, overruns "
                       f"{w['overruns']}, {w['stalls']} stalls >= {STALL_S * 1e3:g} ms; "
@@ -442,18 +493,24 @@ def main() -> None:
     ap.add_argument("--witness", action="store_true",
                     help="run the bare loop beside the control loop, in the same minutes, "
                          "and count the overruns that began in one of its stalls")
+    ap.add_argument("--witness-compute-us", type=float, default=0.0,
+                    help="the witness's pure Python arithmetic per tick, us (default 0: a "
+                         "bare loop); give the control loop's compute to see what the "
+                         "machine does to a loop with that much")
     ap.add_argument("--floor", nargs=2, type=float, metavar=("RATE", "SECONDS"),
                     help=argparse.SUPPRESS)         # the bare loop's own process
+    ap.add_argument("--floor-work-us", type=float, default=0.0, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.floor:
-        print(json.dumps(asyncio.run(_bare_loop(*args.floor))))
+        print(json.dumps(asyncio.run(_bare_loop(*args.floor, args.floor_work_us))))
         return
     structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.ERROR))
     # python-can: "Got incomplete message" on each TCP read that splits a frame (under load)
     logging.getLogger("can.interfaces.socketcand").setLevel(logging.ERROR)
     sleep_s = min(args.seconds, 10.0) if args.sleep_seconds is None else args.sleep_seconds
     r = measure(args.seconds, args.rates or [args.rate], sleep_s, load=args.load,
-                floor_seconds=args.floor_seconds, with_witness=args.witness)
+                floor_seconds=args.floor_seconds, with_witness=args.witness or
+                args.witness_compute_us > 0, witness_work_us=args.witness_compute_us)
     print_report(r)
     if args.json:
         Path(args.json).write_text(json.dumps(r, indent=2))

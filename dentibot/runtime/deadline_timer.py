@@ -73,6 +73,8 @@ class DeadlineTimer:
             err = ctypes.get_errno()
             raise OSError(err, f"timerfd_create: {os.strerror(err)}")
         self.fd = fd
+        self._loop: asyncio.AbstractEventLoop | None = None   # the loop it is registered with
+        self._fut: asyncio.Future | None = None
         self._spec = _Itimerspec()
         self._spec_ref = ctypes.byref(self._spec)
 
@@ -86,25 +88,41 @@ class DeadlineTimer:
             raise OSError(err, f"timerfd_settime: {os.strerror(err)}")
 
     async def wait_until(self, t: float) -> None:
-        """Wait in the event loop (serving everything else) until CLOCK_MONOTONIC >= ``t``."""
+        """Wait in the event loop (serving everything else) until CLOCK_MONOTONIC >= ``t``.
+        The descriptor stays registered with the running loop between waits (registering
+        it costs two ``epoll_ctl`` calls and a handle per tick); an expiry nobody waits for
+        any more (a cancelled wait) is consumed and dropped, and one re-armed over before its
+        callback ran wakes nobody."""
         loop = asyncio.get_running_loop()
-        fut = loop.create_future()
-        fd = self.fd
-
-        def fired() -> None:
-            with contextlib.suppress(BlockingIOError):
-                os.read(fd, 8)                      # the expiry count: consumed
-            if not fut.done():
-                fut.set_result(None)
-
+        if self._loop is not loop:
+            self._unregister()
+            loop.add_reader(self.fd, self._fired)
+            self._loop = loop
+        fut = self._fut = loop.create_future()
         self.arm(t)
-        loop.add_reader(fd, fired)
         try:
             await fut
         finally:
-            loop.remove_reader(fd)
+            if self._fut is fut:                    # (a newer wait may have begun)
+                self._fut = None
+
+    def _fired(self) -> None:
+        try:
+            os.read(self.fd, 8)                     # the expiry count: consumed
+        except BlockingIOError:                     # re-armed since it was seen readable
+            return                                  # (arming clears the count): not ours
+        fut = self._fut
+        if fut is not None and not fut.done():
+            fut.set_result(None)
+
+    def _unregister(self) -> None:
+        loop, self._loop = self._loop, None
+        if loop is not None and not loop.is_closed():
+            with contextlib.suppress(Exception):
+                loop.remove_reader(self.fd)
 
     def close(self) -> None:
+        self._unregister()
         fd, self.fd = self.fd, -1
         if fd >= 0:
             os.close(fd)

@@ -80,6 +80,44 @@ async def test_the_kernel_timer_wakes_at_the_deadline_without_spinning():
     assert time.process_time() - cpu0 > cpu                          # it spun
 
 
+@pytest.mark.skipif(deadline_timer() is None, reason="no timerfd on this system")
+async def test_a_cancelled_wait_does_not_wake_the_next_one_early():
+    """The descriptor stays registered between waits: the expiry of a wait that was
+    cancelled, whose callback the loop has already queued, must not end the next wait
+    before its own deadline (nor leave it waiting for ever)."""
+    timer = deadline_timer()
+    try:
+        first = asyncio.ensure_future(timer.wait_until(time.perf_counter() + 0.001))
+        await asyncio.sleep(0)                                   # armed, waiting
+        time.sleep(0.003)  # noqa: ASYNC251 - the loop held past its expiry on purpose
+        await asyncio.sleep(0)        # the loop sees it: its callback queued behind this task
+        first.cancel()
+        due = time.perf_counter() + 0.02
+        async with asyncio.timeout(1.0):                         # (entered in this step)
+            await timer.wait_until(due)
+        assert time.perf_counter() >= due
+        again = time.perf_counter() + 0.005                       # and the timer still works
+        async with asyncio.timeout(1.0):
+            await timer.wait_until(again)
+        assert time.perf_counter() >= again
+    finally:
+        timer.close()
+
+
+@pytest.mark.skipif(deadline_timer() is None, reason="no timerfd on this system")
+def test_one_timer_waits_in_successive_event_loops():
+    """A clock outlives an event loop (a session's procedure after another): its timer
+    registers itself with whichever loop waits on it."""
+    timer = deadline_timer()
+    try:
+        for _ in range(3):
+            due = time.perf_counter() + 0.003
+            asyncio.run(timer.wait_until(due))
+            assert time.perf_counter() >= due
+    finally:
+        timer.close()
+
+
 async def test_the_timer_serves_other_tasks_while_it_waits():
     """A task scheduled during the wait runs before the deadline (the loop is not blocked)."""
     c = RealTimeClock(0.01)
