@@ -60,7 +60,6 @@ from __future__ import annotations
 
 import asyncio
 import math
-import numbers
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -92,6 +91,7 @@ from dentibot.io.meca500_protocol import (
     decode_rt,
     describe_code,
     encode_command,
+    is_number,
 )
 
 log = structlog.get_logger(__name__)
@@ -152,12 +152,8 @@ class _Waiter:
             self.future.set_exception(exc)
 
 
-def _is_number(x) -> bool:
-    return isinstance(x, numbers.Real) and not isinstance(x, bool)
-
-
 def _in_range(field: str, value: float, lo: float, hi: float, unit: str) -> float:
-    if not (_is_number(value) and math.isfinite(value) and lo <= value <= hi):
+    if not (is_number(value) and math.isfinite(value) and lo <= value <= hi):
         raise ConfigError(field, value, f"{lo}..{hi} {unit}")
     return float(value)
 
@@ -823,7 +819,7 @@ class Meca500Driver:
         if len(v) != 6:
             raise ConfigError(f"meca500.{field}", v, "6 values (J1..J6)")
         for i, x in enumerate(v):
-            if not _is_number(x) or not math.isfinite(x):
+            if not is_number(x) or not math.isfinite(x):
                 raise ConfigError(f"meca500.{field}.J{i + 1}", x, "a finite number")
         return tuple(float(x) for x in v)
 

@@ -31,6 +31,7 @@ from dentibot.io.meca500_protocol import (
     encode_command,
     encode_response,
     encode_rt,
+    is_number,
     kind_of,
 )
 
@@ -158,6 +159,23 @@ def test_encode_command_refuses_non_finite_or_non_numbers():
     for bad in (math.nan, math.inf, -math.inf, "1", True, None):
         with pytest.raises(ConfigError, match=r"args\[1\]"):
             encode_command("MoveJointsVel", 0.0, bad, 0, 0, 0, 0)
+
+
+def test_numbers_of_every_kind_a_caller_holds_encode_alike():
+    """numpy's scalars (what a velocity array yields), Python's ints and floats and other
+    real numbers encode to the same text; bools (numpy's too) are not numbers."""
+    from fractions import Fraction
+
+    import numpy as np
+    for x, text in ((np.float64(2.5), "2.5"), (2.5, "2.5"), (np.float32(0.5), "0.5"),
+                    (np.int64(-3), "-3"), (-3, "-3"), (Fraction(1, 4), "0.25"),
+                    (np.float64(-0.0), "0"), (1e-7, "0")):
+        assert is_number(x), x
+        assert encode_command("SetVelTimeout", x) == f"SetVelTimeout({text})".encode() + b"\0"
+    for bad in (True, np.bool_(True), "1", None, 1j):
+        assert not is_number(bad), bad
+        with pytest.raises(ConfigError, match=r"args\[0\]"):
+            encode_command("SetVelTimeout", bad)
 
 
 def test_encode_command_refuses_bad_names():
