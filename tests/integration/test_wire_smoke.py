@@ -39,25 +39,30 @@ def _quiet():
     structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
 
 
-async def _drag(proc: Procedure, world: World) -> np.ndarray:
-    """Drag mode, a 1 N hand push for SECONDS; returns the tip displacement (mm, {0})."""
+async def _drag(proc: Procedure, world: World) -> tuple[np.ndarray, float]:
+    """Drag mode, a 1 N hand push for SECONDS of ticks; returns the tip displacement (mm,
+    {0}) and how long the world felt the push (s of its own time: in real time, ticks that
+    start late or are skipped make it longer than the ticks' SECONDS)."""
     async with proc:
         assert await proc.command("drag") is None
         await proc.run_for(ticks=5)
         start = np.array(world.tip_0)
         world.hand_force_0 = HAND_N
+        t_on = world.t
         await proc.run_for(ticks=round(SECONDS / 0.002))
         world.hand_force_0 = (0.0, 0.0, 0.0)
+        pushed_s = world.t - t_on
         await proc.command("stop")
         await proc.run_for(ticks=5)
-    return np.array(world.tip_0) - start
+    return np.array(world.tip_0) - start, pushed_s
 
 
 @pytest.mark.timeout(60)
 async def test_same_motion_in_process_and_over_the_wire():
     h = Procedure.simulated(WorldConfig(seed=21), RuntimeConfig(thresholds=LOOSE))
-    local = await _drag(h, h.world)
-    # Table 4.3 dragging: k/b = 18.75 mm/s per N at the grip
+    local, local_s = await _drag(h, h.world)
+    # Table 4.3 dragging: k/b = 18.75 mm/s per N at the grip, for the ticks' SECONDS exactly
+    assert local_s == pytest.approx(SECONDS, abs=0.002)
     assert local[0] == pytest.approx(18.75 * SECONDS, rel=0.05)
 
     world = World(WorldConfig(seed=21))
@@ -68,8 +73,12 @@ async def test_same_motion_in_process_and_over_the_wire():
                               gravity=true_gravity_model(world))
         # the looser liveness times reached the devices
         assert bot.modbus.watchdog_ms == 1000 and bot.epos.consumer[1] == 0.25
-        wire = await _drag(proc, world)
+        wire, wire_s = await _drag(proc, world)
         assert proc.runtime.state == "idle", proc.runtime.treatment.fault_causes
         assert d.ft.lost == 0
-    # same motion within the jitter of real time (a few ticks of 1.2 s) and servo lag
-    np.testing.assert_allclose(wire, local, atol=0.08 * abs(local[0]))
+    # the same drag speed: the arm keeps the last joint velocities it was sent until the next
+    # command, so over the wire the tip moves for as long as the world felt the push, which a
+    # busy machine stretches (late and skipped ticks); within the servo lag and the wire's
+    # start and stop jitter
+    assert SECONDS - 0.01 <= wire_s < 2 * SECONDS, wire_s
+    np.testing.assert_allclose(wire, local * (wire_s / local_s), atol=0.08 * abs(local[0]))
