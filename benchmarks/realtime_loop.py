@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/realtime_loop.py [--seconds 60] [--rate 500 | --rates 500 1000]
                                                  [--sleep-seconds 10] [--load N] [--json FILE]
                                                  [--witness] [--witness-compute-us US]
+                                                 [--cpus N ...] [--sim-cpus N ...]
 
 1. Starts ``dentibot sim serve`` in a child process (loopback, free ports), connects the four
    real drivers (Meca500 TCP, Net F/T UDP, EPOS4 via socketcand, Modbus TCP).
@@ -42,6 +43,9 @@ meets the times the machine runs it slower (``slow_ticks``: ticks whose arithmet
 3 times its calibrated time or more, with ``slow_ticks_top``: the longest, wall and thread
 CPU us). Its overruns are what this machine does to any loop with that much compute per
 tick.
+
+``--cpus`` keeps the control process to those CPUs while it ticks (``control.cpus``),
+``--sim-cpus`` the simulators' process (``dentibot sim serve --cpus``).
 
 Targets: 500 Hz p99 lateness <= 100 us, zero overruns over 60 s.
 """
@@ -213,7 +217,8 @@ async def _let_devices_run() -> None:
     await asyncio.sleep(0.001)
 
 
-async def control_loop(d, world: World, clock: Clock, seconds: float) -> dict:
+async def control_loop(d, world: World, clock: Clock, seconds: float,
+                       cpus: tuple[int, ...] | None = None) -> dict:
     """The runtime's control task paced by ``clock`` for ``seconds``; its timing figures.
     Devices a previous loop left faulted are brought back first (the operator's reset), so
     that one loop's fault does not become the next one's. ``host_heartbeat_gap_max_ms``:
@@ -235,7 +240,8 @@ async def control_loop(d, world: World, clock: Clock, seconds: float) -> dict:
         if row["overrun"]:                 # the tick's deadline, on the monotonic clock
             overrun_at.append(time.monotonic() - (row["lateness_us"] + row["compute_us"]) / 1e6)
 
-    proc = Procedure.over(d, RuntimeConfig(period_s=clock.period_s, thresholds=LOOSE),
+    proc = Procedure.over(d, RuntimeConfig(period_s=clock.period_s, thresholds=LOOSE,
+                                           cpus=cpus),
                           clock=clock, gravity=true_gravity_model(world), sink=sink)
     rt = proc.runtime
     await _let_devices_run()
@@ -263,12 +269,13 @@ async def control_loop(d, world: World, clock: Clock, seconds: float) -> dict:
     return s
 
 
-def _serve(ports: dict) -> subprocess.Popen:
+def _serve(ports: dict, cpus: tuple[int, ...] | None = None) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "dentibot.cli", "sim", "serve", "--meca-port",
          str(ports["meca"]), "--netft-port", str(ports["netft"]), "--netft-http-port",
          str(ports["http"]), "--modbus-port", str(ports["modbus"]), "--can-port",
-         str(ports["can"]), "--seed", "1"],
+         str(ports["can"]), "--seed", "1",
+         *(["--cpus", *map(str, cpus)] if cpus else [])],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
 
 
@@ -381,10 +388,11 @@ def _priority_granted(clock: RealTimeClock) -> str:
 async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float = 10.0,
                      round_trip_n: int = 20, load: int = 0,
                      floor_seconds: float | None = None, with_witness: bool = False,
-                     witness_work_us: float = 0.0) -> dict:
+                     witness_work_us: float = 0.0, cpus: tuple[int, ...] | None = None,
+                     sim_cpus: tuple[int, ...] | None = None) -> dict:
     ports = {"meca": free_port(), "http": free_port(), "modbus": free_port(),
              "can": free_port(), "netft": free_port(socket.SOCK_DGRAM)}
-    serve = _serve(ports)  # started once, before any timing
+    serve = _serve(ports, sim_cpus)  # started once, before any timing
     jobs = _load_jobs(load)
     try:
         serve.stdout.readline()                      # the banner: listening
@@ -393,7 +401,7 @@ async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float
                               can_port=ports["can"])
         world = World(WorldConfig(seed=1))           # the server's world, for its load model
         result: dict = {"seconds": seconds, "sleep_seconds": sleep_seconds, "rates": {},
-                        "load_jobs": load,
+                        "load_jobs": load, "cpus": cpus, "sim_cpus": sim_cpus,
                         "priority_raised": _priority_granted(RealTimeClock(0.002))}
         async with open_devices(cfg) as d:
             result["round_trips"] = await round_trips(d, round_trip_n)
@@ -403,7 +411,7 @@ async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float
                 witness = (_witness(rate, seconds + WITNESS_EXTRA_S, witness_work_us)
                            if with_witness else None)
                 r["absolute_deadlines"] = await control_loop(
-                    d, world, RealTimeClock(1.0 / rate), seconds)
+                    d, world, RealTimeClock(1.0 / rate), seconds, cpus)
                 if witness is not None:   # (its end awaited off the loop: the streams go on)
                     r["absolute_deadlines"].update(await asyncio.to_thread(
                         _attributed, r["absolute_deadlines"], witness))
@@ -429,17 +437,25 @@ async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float
 
 def measure(seconds: float = 60.0, rates=(500.0, 1000.0), sleep_seconds: float = 10.0,
             round_trip_n: int = 20, load: int = 0, floor_seconds: float | None = None,
-            with_witness: bool = False, witness_work_us: float = 0.0) -> dict:
+            with_witness: bool = False, witness_work_us: float = 0.0,
+            cpus: tuple[int, ...] | None = None, sim_cpus: tuple[int, ...] | None = None
+            ) -> dict:
     """Round trips, then each rate with absolute deadlines, then each with plain sleep, then
     each rate's platform floor (``floor_seconds``, default ``seconds``), with ``load``
     CPU-bound jobs running throughout."""
     return asyncio.run(main_async(seconds, rates, sleep_seconds, round_trip_n, load,
-                                  floor_seconds, with_witness, witness_work_us))
+                                  floor_seconds, with_witness, witness_work_us, cpus,
+                                  sim_cpus))
+
+
+def _cpu_list(cpus) -> str:
+    return ",".join(map(str, cpus)) if cpus else "any"
 
 
 def print_report(r: dict) -> None:
     print(f"{r['load_jobs']} CPU-bound job(s) beside it; control loop priority: "
-          f"{r['priority_raised'] or 'NOT raised (not permitted)'}")
+          f"{r['priority_raised'] or 'NOT raised (not permitted)'}; CPUs: control "
+          f"{_cpu_list(r.get('cpus'))}, simulators {_cpu_list(r.get('sim_cpus'))}")
     for rate, res in r["rates"].items():
         for name in ("absolute_deadlines", "plain_asyncio_sleep", "platform_floor"):
             s = res.get(name)
@@ -497,6 +513,10 @@ def main() -> None:
                     help="the witness's pure Python arithmetic per tick, us (default 0: a "
                          "bare loop); give the control loop's compute to see what the "
                          "machine does to a loop with that much")
+    ap.add_argument("--cpus", type=int, nargs="+", default=None,
+                    help="keep the control process to these CPUs (control.cpus)")
+    ap.add_argument("--sim-cpus", type=int, nargs="+", default=None,
+                    help="keep the simulators' process to these CPUs (sim serve --cpus)")
     ap.add_argument("--floor", nargs=2, type=float, metavar=("RATE", "SECONDS"),
                     help=argparse.SUPPRESS)         # the bare loop's own process
     ap.add_argument("--floor-work-us", type=float, default=0.0, help=argparse.SUPPRESS)
@@ -510,7 +530,9 @@ def main() -> None:
     sleep_s = min(args.seconds, 10.0) if args.sleep_seconds is None else args.sleep_seconds
     r = measure(args.seconds, args.rates or [args.rate], sleep_s, load=args.load,
                 floor_seconds=args.floor_seconds, with_witness=args.witness or
-                args.witness_compute_us > 0, witness_work_us=args.witness_compute_us)
+                args.witness_compute_us > 0, witness_work_us=args.witness_compute_us,
+                cpus=tuple(args.cpus) if args.cpus else None,
+                sim_cpus=tuple(args.sim_cpus) if args.sim_cpus else None)
     print_report(r)
     if args.json:
         Path(args.json).write_text(json.dumps(r, indent=2))

@@ -117,7 +117,8 @@ def runtime_config(p: Protocol) -> RuntimeConfig:
                            lateral_free_ref_mm=p.control.lateral_free_ref_mm,
                            axial_lag_s=(None if p.control.axial_lag_ms is None
                                         else p.control.axial_lag_ms / 1e3)),
-        file=FileBeam(size=p.file.size, taper=p.file.taper, length_mm=float(p.file.length_mm)))
+        file=FileBeam(size=p.file.size, taper=p.file.taper, length_mm=float(p.file.length_mm)),
+        cpus=p.control.cpus)
 
 
 def recording_path(p: Protocol, override: str | Path | None = None) -> Path | None:

@@ -16,7 +16,12 @@ from dentibot.app.runner import served_world
 from dentibot.cli.common import user_errors
 from dentibot.io.devices import devices_yaml
 from dentibot.protocol.schema import DEFAULT_WORLD, WORLDS
-from dentibot.runtime.clock import SIMULATOR_FIFO_PRIORITY, raised_priority
+from dentibot.runtime.clock import (
+    SIMULATOR_FIFO_PRIORITY,
+    check_cpus,
+    pinned,
+    raised_priority,
+)
 from dentibot.sim.serve import ServePorts, VirtualDentiBot
 
 
@@ -54,7 +59,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     # the policy, so none of them is preempted by an ordinary job while it holds the
     # interpreter lock. Measured: the F/T stream went 20.3 ms stale at nice -10 under one
     # CPU-bound job beside the control loop.
-    with contextlib.suppress(KeyboardInterrupt), \
+    cpus = check_cpus("--cpus", args.cpus)
+    with contextlib.suppress(KeyboardInterrupt), pinned(cpus), \
             raised_priority(fifo_priority=SIMULATOR_FIFO_PRIORITY, threads_inherit=True):
         asyncio.run(_serve(args))
     return 0
@@ -73,6 +79,9 @@ def add_parser(sub) -> None:
                        help="Net F/T calibration page (HTTP) port")
     serve.add_argument("--modbus-port", type=int, default=5020, help="aux I/O Modbus TCP port")
     serve.add_argument("--can-port", type=int, default=29536, help="socketcand TCP port")
+    serve.add_argument("--cpus", type=int, nargs="+", default=None,
+                       help="keep the simulators to these CPUs (e.g. other ones than the "
+                            "control loop's control.cpus)")
     serve.add_argument("--can-channel", default="vcan0",
                        help="CAN channel: the socketcand channel name and the --can-interface "
                             "channel")

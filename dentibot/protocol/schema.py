@@ -82,6 +82,11 @@ class ControlSpec(Strict):
                     "the file (m_z/b_z): keeps the axial loop from running away through a "
                     "real arm's delay in a canal that drags the file; null: Table 4.3's "
                     "1 ms (the thesis)")
+    cpus: list[int] | None = Field(
+        None, min_length=1,
+        description="CPUs the control process is kept to in real time, e.g. [3] for a core "
+                    "the kernel keeps other jobs off (isolcpus); each must be one this "
+                    "process may use; null: wherever the kernel puts it")
 
 
 class ToolSpec(Strict):

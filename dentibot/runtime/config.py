@@ -16,9 +16,10 @@ from dentibot.control.feedrate import FILE_STRENGTH_MNM, FeedrateParams, file_to
 from dentibot.control.filebeam import FileBeam
 from dentibot.errors import ConfigError
 from dentibot.protocol.schema import StalePeriods
-from dentibot.states.strategies import StrategyParams
+from dentibot.runtime.clock import check_cpus
 from dentibot.runtime.supervisor import SupervisorLimits
 from dentibot.runtime.tooth import ToothConfig
+from dentibot.states.strategies import StrategyParams
 
 
 def _check(name: str, value: float, lo: float, hi: float, unit: str = "") -> None:
@@ -182,7 +183,10 @@ class RuntimeConfig:
     tcp_points: int = 4                # thesis 3.4: four-point TCP (more when available)
     #: the patient tracker's geometry: depth in the tooth's frame (None: the base frame)
     tooth: ToothConfig | None = None
+    #: CPUs the control process is kept to in real time (None: wherever the kernel puts it)
+    cpus: tuple[int, ...] | None = None
 
     def __post_init__(self) -> None:
         _check("control.period_s", self.period_s, 0.0002, 0.1, "s")
+        object.__setattr__(self, "cpus", check_cpus("control.cpus", self.cpus))
         _check("calibration.tcp_points", self.tcp_points, 4, 12, "poses (eq 3.23 needs >= 4)")

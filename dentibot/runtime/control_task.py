@@ -163,7 +163,7 @@ class Runtime:
         lateness = 0.0
         n = 0
         fused = self.fused if until is None and max_ticks is None else None
-        with realtime_policy(self.clock) as collect:
+        with realtime_policy(self.clock, self.cfg.cpus) as collect:
             while not self._stop.is_set():
                 t0 = time.perf_counter()
                 ran = await fused(self) if fused is not None else 0

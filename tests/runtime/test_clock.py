@@ -3,13 +3,25 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import os
+import threading
 import time
 
 import pytest
 
+from dentibot.app.procedure import Procedure
 from dentibot.errors import ConfigError
-from dentibot.runtime.clock import DeadlineStats, LockStepClock, RealTimeClock
+from dentibot.runtime.clock import (
+    DeadlineStats,
+    LockStepClock,
+    RealTimeClock,
+    check_cpus,
+    pinned,
+)
+from dentibot.runtime.config import RuntimeConfig
 from dentibot.runtime.deadline_timer import deadline_timer
+from dentibot.sim.world import WorldConfig
 
 pytestmark = pytest.mark.wire
 
@@ -200,3 +212,64 @@ async def test_the_gate_says_when_its_next_waiter_is_due_and_counts_ticks_run_el
     assert woken == ["pedal up"] and gate.ticks_to_next_waiter() == 6
     fut.cancel()                              # a cancelled wait is no longer due
     assert gate.ticks_to_next_waiter() is None
+
+
+_CPUS = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+needs_two_cpus = pytest.mark.skipif(len(_CPUS) < 2, reason="needs CPU affinity and 2 CPUs")
+
+
+@needs_two_cpus
+def test_pinning_keeps_every_thread_to_the_cpus_and_gives_each_its_own_back():
+    """Linux sets CPU affinity per thread: a helper thread started before the block (a
+    driver's receiver) is kept to the CPUs as well; each thread's own set comes back."""
+    last = _CPUS[-1]
+    ready, done = threading.Event(), threading.Event()
+    tid: list[int] = []
+
+    def helper():
+        tid.append(threading.get_native_id())
+        ready.set()
+        done.wait(5.0)
+
+    t = threading.Thread(target=helper)
+    t.start()
+    ready.wait(5.0)
+    try:
+        os.sched_setaffinity(tid[0], {_CPUS[0]})             # its own set, not the process's
+        with pinned((last,)):
+            assert os.sched_getaffinity(0) == {last}
+            assert os.sched_getaffinity(tid[0]) == {last}
+        assert os.sched_getaffinity(0) == set(_CPUS)
+        assert os.sched_getaffinity(tid[0]) == {_CPUS[0]}
+    finally:
+        done.set()
+        t.join()
+
+
+@pytest.mark.skipif(not _CPUS, reason="no CPU affinity on this system")
+def test_cpus_are_checked_against_those_the_process_may_use():
+    assert check_cpus("control.cpus", None) is None
+    assert check_cpus("control.cpus", [_CPUS[-1], _CPUS[0], _CPUS[0]]) == \
+        tuple(sorted({_CPUS[0], _CPUS[-1]}))
+    for bad in ([max(_CPUS) + 1], [-1], [], [True], ["x"]):
+        with pytest.raises(ConfigError) as e:
+            check_cpus("control.cpus", bad)
+        msg = str(e.value)
+        assert "control.cpus" in msg and str(_CPUS) in msg, msg
+    with pytest.raises(ConfigError, match="control.cpus"):
+        RuntimeConfig(cpus=(max(_CPUS) + 1,))
+
+
+@needs_two_cpus
+async def test_a_real_time_run_is_kept_to_its_cpus_while_it_ticks():
+    """``control.cpus`` in force while the control task ticks in real time (the built-in
+    simulator paced at the real world's speed), and the process's own set back after."""
+    last = _CPUS[-1]
+    seen: list[set[int]] = []
+    proc = Procedure.simulated(WorldConfig(seed=1), time="paced")
+    proc.runtime.cfg = dataclasses.replace(proc.runtime.cfg, cpus=(last,))
+    proc.runtime.on_tick = lambda rt: seen.append(os.sched_getaffinity(0))
+    async with proc:
+        await proc.run_for(0.05)
+    assert seen and all(s == {last} for s in seen)
+    assert os.sched_getaffinity(0) == set(_CPUS)
