@@ -437,7 +437,7 @@ def check_cpus(field: str, cpus) -> tuple[int, ...] | None:
         return None
     allowed = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
     try:
-        chosen = tuple(sorted({int(c) for c in cpus}))
+        chosen = () if isinstance(cpus, str | bytes) else tuple(sorted({int(c) for c in cpus}))
     except (TypeError, ValueError):
         chosen = ()
     if not chosen or any(isinstance(c, bool) for c in cpus) or allowed is None \
