@@ -26,6 +26,7 @@ import contextlib
 import ctypes
 import os
 import sys
+import weakref
 
 __all__ = ["DeadlineTimer", "deadline_timer"]
 
@@ -96,7 +97,9 @@ class DeadlineTimer:
         loop = asyncio.get_running_loop()
         if self._loop is not loop:
             self._unregister()
-            loop.add_reader(self.fd, self._fired)
+            # the loop holds the callback weakly: a timer nobody keeps any more is collected,
+            # and closing it takes it out of the loop and releases its descriptor
+            loop.add_reader(self.fd, _call_weakly, weakref.WeakMethod(self._fired))
             self._loop = loop
         fut = self._fut = loop.create_future()
         self.arm(t)
@@ -130,6 +133,14 @@ class DeadlineTimer:
     def __del__(self) -> None:
         with contextlib.suppress(Exception):
             self.close()
+
+
+def _call_weakly(method: weakref.WeakMethod) -> None:
+    """The loop's reader callback of a :class:`DeadlineTimer`: its ``_fired``, if it is
+    still there."""
+    fired = method()
+    if fired is not None:
+        fired()
 
 
 def deadline_timer() -> DeadlineTimer | None:

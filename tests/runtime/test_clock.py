@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import gc
 import os
 import threading
 import time
@@ -128,6 +129,22 @@ def test_one_timer_waits_in_successive_event_loops():
             assert time.perf_counter() >= due
     finally:
         timer.close()
+
+
+@pytest.mark.skipif(deadline_timer() is None, reason="no timerfd on this system")
+async def test_a_timer_nobody_keeps_leaves_the_loop_and_releases_its_descriptor():
+    """Registered with the loop between waits, a timer is still collected once its clock is
+    gone (a session makes a clock per procedure in one long-lived loop): it is taken out of
+    the loop and its descriptor closed."""
+    loop = asyncio.get_running_loop()
+    timer = deadline_timer()
+    fd = timer.fd
+    await timer.wait_until(time.perf_counter() + 0.001)
+    del timer
+    gc.collect()
+    assert loop.remove_reader(fd) is False                      # no longer watched
+    with pytest.raises(OSError):
+        os.fstat(fd)                                              # and closed
 
 
 async def test_the_timer_serves_other_tasks_while_it_waits():
