@@ -23,6 +23,7 @@ import bisect
 import contextlib
 import gc
 import math
+import operator
 import os
 import threading
 import time
@@ -375,6 +376,15 @@ def raised_priority(nice: int = REALTIME_NICE, fifo_priority: int | None = None,
                 os.setpriority(os.PRIO_PROCESS, 0, before)
 
 
+def _thread_ids() -> list[int]:
+    """The native ids of this process's threads (Linux ``/proc/self/task``); empty where
+    the system does not list them."""
+    try:
+        return [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        return []
+
+
 @contextlib.contextmanager
 def others_raised(nice: int = REALTIME_NICE, fifo_priority: int | None = None):
     """The process's other threads (the drivers' receivers, the recorder's writer) raised
@@ -394,10 +404,7 @@ def others_raised(nice: int = REALTIME_NICE, fifo_priority: int | None = None):
     before."""
     me = threading.get_native_id()
     before: dict[int, tuple[str, object]] = {}
-    try:
-        tids = [int(t) for t in os.listdir("/proc/self/task")]
-    except OSError:
-        tids = []
+    tids = _thread_ids()
     fifo = fifo_priority is not None and hasattr(os, "sched_setscheduler")
     for tid in tids:
         if tid == me:
@@ -436,11 +443,12 @@ def check_cpus(field: str, cpus) -> tuple[int, ...] | None:
     if cpus is None:
         return None
     allowed = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
-    try:
-        chosen = () if isinstance(cpus, str | bytes) else tuple(sorted({int(c) for c in cpus}))
-    except (TypeError, ValueError):
+    items = () if isinstance(cpus, str | bytes) else cpus
+    try:                     # integers only (numpy's too): not a float, not "1"
+        chosen = tuple(sorted({operator.index(c) for c in items}))
+    except TypeError:        # (a single number is not a collection of them either)
         chosen = ()
-    if not chosen or any(isinstance(c, bool) for c in cpus) or allowed is None \
+    if not chosen or any(isinstance(c, bool) for c in items) or allowed is None \
             or not set(chosen) <= set(allowed):
         where = "no CPU affinity on this system" if allowed is None else \
             f"one or more of this machine's CPUs the process may use: {allowed}"
@@ -459,12 +467,8 @@ def pinned(cpus: tuple[int, ...] | None):
     if cpus is None or not hasattr(os, "sched_setaffinity"):
         yield
         return
-    try:
-        tids = [int(t) for t in os.listdir("/proc/self/task")]
-    except OSError:
-        tids = [0]
     before: dict[int, set[int]] = {}
-    for tid in tids:
+    for tid in _thread_ids() or [0]:             # (0: the calling thread alone)
         try:
             was = os.sched_getaffinity(tid)
             os.sched_setaffinity(tid, cpus)

@@ -268,7 +268,10 @@ def test_cpus_are_checked_against_those_the_process_may_use():
     assert check_cpus("control.cpus", None) is None
     assert check_cpus("control.cpus", [_CPUS[-1], _CPUS[0], _CPUS[0]]) == \
         tuple(sorted({_CPUS[0], _CPUS[-1]}))
-    for bad in ([max(_CPUS) + 1], [-1], [], [True], ["x"], "01", 1):
+    import numpy as np
+    assert check_cpus("control.cpus", [np.int64(_CPUS[-1])]) == (_CPUS[-1],)
+    for bad in ([max(_CPUS) + 1], [-1], [], [True], ["x"], [str(_CPUS[0])],
+                [float(_CPUS[0])], "01", 1):
         with pytest.raises(ConfigError) as e:
             check_cpus("control.cpus", bad)
         msg = str(e.value)
