@@ -344,30 +344,38 @@ async def _bare_loop(rate: float, seconds: float, work_us: float = 0.0) -> dict:
     return s
 
 
+def _floor_command(rate: float, seconds: float, work_us: float = 0.0) -> list[str]:
+    """This script run as :func:`_bare_loop`'s own process (see ``--floor``)."""
+    return [sys.executable, __file__, "--floor", f"{rate!r}", f"{seconds!r}",
+            "--floor-work-us", f"{work_us!r}"]
+
+
+def _floor_figures(stdout: str) -> dict:
+    """:func:`_bare_loop`'s figures, the last line its process printed."""
+    return json.loads(stdout.strip().splitlines()[-1])
+
+
 def platform_floor(rate: float, seconds: float) -> dict:
     """:func:`_bare_loop` in a fresh process (so that no thread of this one shares its
     interpreter lock), its figures read back."""
-    out = subprocess.run([sys.executable, __file__, "--floor", f"{rate!r}", f"{seconds!r}"],
-                         cwd=ROOT, capture_output=True, text=True, timeout=seconds + 60,
-                         check=True)
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    out = subprocess.run(_floor_command(rate, seconds), cwd=ROOT, capture_output=True,
+                         text=True, timeout=seconds + 60, check=True)
+    return _floor_figures(out.stdout)
 
 
 def _witness(rate: float, seconds: float, work_us: float = 0.0) -> subprocess.Popen:
     """:func:`_bare_loop` started in a fresh process now, running ``seconds`` with
     ``work_us`` of arithmetic per tick: a witness of what the machine does to a loop while
     the control loop runs (read with :func:`_attributed`)."""
-    return subprocess.Popen([sys.executable, __file__, "--floor", f"{rate!r}", f"{seconds!r}",
-                             "--floor-work-us", f"{work_us!r}"],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                            text=True)
+    return subprocess.Popen(_floor_command(rate, seconds, work_us), cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
 
 
 def _attributed(loop: dict, witness: subprocess.Popen) -> dict:
     """The witness's figures, and how many of the loop's overruns began within
     :data:`SHARED_S` of a stall of the witness (the machine's, not the loop's)."""
     out, _ = witness.communicate(timeout=120)
-    w = json.loads(out.strip().splitlines()[-1])
+    w = _floor_figures(out)
     stalls = np.array(sorted(w.pop("stalls_at")))
     shared = 0
     for t in loop["overrun_at"]:
