@@ -39,7 +39,8 @@ its own 6- (or 7-) parameter problem; it is identifiable only when the poses tur
 about at least two axes (with one orientation only ``R b_i - a_i`` is seen, never ``a_i``
 and ``b_i`` apart).
 
-Pure numpy/scipy: no I/O.
+Pure numpy/scipy, the per-tick formulas compiled (:mod:`~dentibot.control.strings_kernels`):
+no I/O.
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from dentibot.control import strings_kernels as kernels
 from dentibot.errors import ConfigError, IdentificationError
 
 #: Fewest strings for the full pose, and for position only.
@@ -60,6 +62,12 @@ POSITION_STRINGS = 3
 DEFAULT_CALIBRATION_MAX_CONDITION = 1e4
 
 _DEG = 180.0 / np.pi
+
+
+def _c(a: np.ndarray) -> np.ndarray:
+    """A writable C-ordered float copy, the one array type the compiled kernels are built
+    for (a slice of a 4x4 pose is neither)."""
+    return np.array(a, dtype=np.float64, order="C")
 
 
 def _ro(a: np.ndarray) -> np.ndarray:
@@ -117,17 +125,13 @@ def pose_matrix(R, p) -> np.ndarray:
 def lengths(geometry: StringGeometry, pose) -> np.ndarray:
     """Inverse kinematics: ``l_i = || p + R b_i - a_i ||`` (mm), shape (n,)."""
     R, p = as_pose(pose)
-    d = p + geometry.tooth_mm @ R.T - geometry.mount_mm
-    return np.linalg.norm(d, axis=1)
+    return kernels.lengths(geometry.mount_mm, geometry.tooth_mm, _c(R), _c(p))
 
 
 def length_jacobian(geometry: StringGeometry, pose) -> np.ndarray:
     """``J`` (n x 6): ``dl = J @ (dp mm, dth rad)``, row ``[u_i, (R b_i) x u_i]``."""
     R, p = as_pose(pose)
-    rb = geometry.tooth_mm @ R.T
-    d = p + rb - geometry.mount_mm
-    u = d / np.linalg.norm(d, axis=1)[:, None]
-    return np.hstack([u, np.cross(rb, u)])
+    return kernels.jacobian(geometry.mount_mm, geometry.tooth_mm, _c(R), _c(p))
 
 
 def _left_jacobian(r: np.ndarray) -> np.ndarray:
@@ -254,22 +258,16 @@ def track(geometry: StringGeometry, lengths_mm: Sequence[float], previous_pose, 
     Returns ``(MT_T 4x4, rms residual mm)``; a singular Jacobian (strings aligned) gives
     a non-finite residual rather than an exception."""
     R, p = as_pose(previous_pose)
-    R, p = R.copy(), p.copy()
     m = np.asarray(lengths_mm, dtype=float).reshape(-1)
     if m.shape != (geometry.n,) or geometry.n < FULL_POSE_STRINGS:
         raise ConfigError("strings.lengths_mm", m.shape,
                           f"{geometry.n} lengths, at least {FULL_POSE_STRINGS}")
-    for _ in range(iterations):
-        pose = (R, p)
-        r = m - lengths(geometry, pose)
-        try:
-            dx = np.linalg.lstsq(length_jacobian(geometry, pose), r, rcond=None)[0]
-        except np.linalg.LinAlgError:
-            return pose_matrix(R, p), float("nan")
-        p = p + dx[:3]
-        R = Rotation.from_rotvec(dx[3:]).as_matrix() @ R
-    res = m - lengths(geometry, (R, p))
-    return pose_matrix(R, p), float(np.sqrt(np.mean(res ** 2)))
+    try:
+        R, p, rms = kernels.track(geometry.mount_mm, geometry.tooth_mm, _c(m), _c(R), _c(p),
+                                  int(iterations))
+    except np.linalg.LinAlgError:
+        return pose_matrix(R, p), float("nan")
+    return pose_matrix(R, p), float(rms)
 
 
 # ============================================================================ consistency

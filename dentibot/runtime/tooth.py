@@ -31,8 +31,8 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from dentibot.control.depth import depth_along
 from dentibot.control.strings import (
     LengthLimits,
     StringGeometry,
@@ -40,9 +40,8 @@ from dentibot.control.strings import (
     forward,
     track,
 )
-from dentibot.control.depth import depth_along
+from dentibot.control.strings_kernels import matrix_rotvec
 from dentibot.runtime.finding import Finding
-
 
 #: The tooth's velocities are differences over this many control periods (16 ms at 500 Hz).
 DIFF_TICKS = 8
@@ -152,8 +151,8 @@ class ToothFrame:
             # (a solve that lands elsewhere found another pose with the same six lengths)
             dt = max(sample.t - self._last_t, 0.0)
             dp = float(np.linalg.norm(t0t[:3, 3] - self._last_0t[:3, 3]))
-            da = math.degrees(Rotation.from_matrix(t0t[:3, :3] @ self._last_0t[:3, :3].T)
-                              .magnitude())
+            turn = matrix_rotvec(t0t[:3, :3] @ self._last_0t[:3, :3].T)
+            da = math.degrees(math.sqrt(turn @ turn))
             if dp > JUMP_MM + MAX_TOOTH_MM_S * dt or da > JUMP_DEG + MAX_TOOTH_DEG_S * dt:
                 return self._lose(f"the tooth's pose jumped {dp:.2f} mm, {da:.1f} deg in "
                                   f"{dt * 1e3:.0f} ms (a patient's head moves at most "
@@ -207,7 +206,7 @@ class ToothFrame:
             v = self.velocity_0
             self.velocity_0 = raw if v is None else v + self._alpha * (raw - v)
             if r_0_t is not None and r0 is not None:
-                raw = Rotation.from_matrix(r_0_t @ r0.T).as_rotvec() / span
+                raw = matrix_rotvec(r_0_t @ r0.T) / span
                 w = self.omega_0
                 self.omega_0 = raw if w is None else w + self._alpha_w * (raw - w)
         self._o_prev = o

@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from dentibot.control import strings as s
+from dentibot.control import strings_kernels as kernels
 from dentibot.errors import ConfigError, IdentificationError
 
 GEO = s.ring_geometry()              # mount ring r 40 mm, clamp ring r 15 mm
@@ -223,3 +224,33 @@ def test_one_tracking_step_follows_a_tick_of_patient_motion():
     two, res2 = s.track(geo, measured, before, iterations=2)
     np.testing.assert_allclose(two, after, atol=1e-9)
     assert res2 < 1e-9
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-5, 1e-4, 0.3, 1.0, 2.5, 2.8, 3.0,
+                                   math.pi - 1e-6, math.pi])
+def test_the_compiled_rotation_vector_maps_agree_with_scipy(angle):
+    """Rodrigues' formula and its inverse (the tracked tick's pose update and the tooth's
+    turn between ticks) against scipy's, for random axes at angles from zero to pi, across
+    the series and the near-pi branches; at pi, r and -r are the same rotation."""
+    rng = np.random.default_rng(int(angle * 1e6) + 1)
+    for _ in range(20):
+        axis = rng.normal(size=3)
+        r = axis / np.linalg.norm(axis) * angle
+        m = Rotation.from_rotvec(r).as_matrix()
+        np.testing.assert_allclose(kernels.rotvec_matrix(r), m, atol=1e-15)
+        got = kernels.matrix_rotvec(m)
+        if angle > 3.0:
+            assert min(np.abs(got - r).max(), np.abs(got + r).max()) < 1e-7
+        else:
+            np.testing.assert_allclose(got, Rotation.from_matrix(m).as_rotvec(), atol=1e-14)
+        assert np.linalg.norm(got) == pytest.approx(angle, abs=1e-12)
+
+
+def test_a_tracking_step_on_a_missing_length_reports_a_non_finite_residual():
+    before = np.eye(4)
+    before[:3, 3] = (0.0, 0.0, 90.0)
+    measured = s.lengths(GEO, before)
+    measured[2] = np.nan
+    pose_after, res = s.track(GEO, measured, before)
+    assert not math.isfinite(res)
+    np.testing.assert_array_equal(pose_after, before)          # the pose is left alone
