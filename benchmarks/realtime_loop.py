@@ -4,6 +4,7 @@
                                                  [--sleep-seconds 10] [--load N] [--json FILE]
                                                  [--witness] [--witness-compute-us US]
                                                  [--cpus N ...] [--sim-cpus N ...]
+                                                 [--parts]
 
 1. Starts ``dentibot sim serve`` in a child process (loopback, free ports), connects the four
    real drivers (Meca500 TCP, Net F/T UDP, EPOS4 via socketcand, Modbus TCP).
@@ -47,6 +48,9 @@ tick.
 ``--cpus`` keeps the control process to those CPUs while it ticks (``control.cpus``),
 ``--sim-cpus`` the simulators' process (``dentibot sim serve --cpus``).
 
+``--parts`` times each part of the tick where it runs, and the compiled calls again back to
+back (:mod:`tick_parts`): what each part costs in place, and how much more than hot.
+
 Targets: 500 Hz p99 lateness <= 100 us, zero overruns over 60 s.
 """
 
@@ -54,6 +58,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import logging
 import math
@@ -71,6 +76,7 @@ import structlog
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from benchutil import fmt, quantiles
+from tick_parts import figures, print_figures, timed_parts
 
 from dentibot.app.procedure import Procedure
 from dentibot.app.simulated import true_gravity_model
@@ -397,7 +403,7 @@ async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float
                      round_trip_n: int = 20, load: int = 0,
                      floor_seconds: float | None = None, with_witness: bool = False,
                      witness_work_us: float = 0.0, cpus: tuple[int, ...] | None = None,
-                     sim_cpus: tuple[int, ...] | None = None) -> dict:
+                     sim_cpus: tuple[int, ...] | None = None, parts: bool = False) -> dict:
     ports = {"meca": free_port(), "http": free_port(), "modbus": free_port(),
              "can": free_port(), "netft": free_port(socket.SOCK_DGRAM)}
     serve = _serve(ports, sim_cpus)  # started once, before any timing
@@ -418,8 +424,11 @@ async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float
                 srv0, t0 = cpu_seconds(serve.pid), time.perf_counter()
                 witness = (_witness(rate, seconds + WITNESS_EXTRA_S, witness_work_us)
                            if with_witness else None)
-                r["absolute_deadlines"] = await control_loop(
-                    d, world, RealTimeClock(1.0 / rate), seconds, cpus)
+                with timed_parts() if parts else contextlib.nullcontext() as timing:
+                    r["absolute_deadlines"] = await control_loop(
+                        d, world, RealTimeClock(1.0 / rate), seconds, cpus)
+                if timing is not None:
+                    r["parts"] = figures(timing)
                 if witness is not None:   # (its end awaited off the loop: the streams go on)
                     r["absolute_deadlines"].update(await asyncio.to_thread(
                         _attributed, r["absolute_deadlines"], witness))
@@ -446,14 +455,14 @@ async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float
 def measure(seconds: float = 60.0, rates=(500.0, 1000.0), sleep_seconds: float = 10.0,
             round_trip_n: int = 20, load: int = 0, floor_seconds: float | None = None,
             with_witness: bool = False, witness_work_us: float = 0.0,
-            cpus: tuple[int, ...] | None = None, sim_cpus: tuple[int, ...] | None = None
-            ) -> dict:
+            cpus: tuple[int, ...] | None = None, sim_cpus: tuple[int, ...] | None = None,
+            parts: bool = False) -> dict:
     """Round trips, then each rate with absolute deadlines, then each with plain sleep, then
     each rate's platform floor (``floor_seconds``, default ``seconds``), with ``load``
     CPU-bound jobs running throughout."""
     return asyncio.run(main_async(seconds, rates, sleep_seconds, round_trip_n, load,
                                   floor_seconds, with_witness, witness_work_us, cpus,
-                                  sim_cpus))
+                                  sim_cpus, parts))
 
 
 def _cpu_list(cpus) -> str:
@@ -498,6 +507,9 @@ def print_report(r: dict) -> None:
                       f"{s['overruns_shared_with_witness']} of the loop's {s['overruns']} "
                       f"overruns began in one")
         print(f"{rate:>5} Hz simulator process CPU {res['simulator_cpu_percent']:.0f} %")
+        if "parts" in res:
+            print(f"{rate:>5} Hz the tick's parts, in place:")
+            print_figures(res["parts"], indent="      ")
     for k, v in r["round_trips"].items():
         print(f"round trip {k:>13}: median {fmt(v['median_ms'], '.2f')} ms, max "
               f"{fmt(v['max_ms'], '.2f')} ms (n={v['n']})")
@@ -525,6 +537,8 @@ def main() -> None:
                     help="keep the control process to these CPUs (control.cpus)")
     ap.add_argument("--sim-cpus", type=int, nargs="+", default=None,
                     help="keep the simulators' process to these CPUs (sim serve --cpus)")
+    ap.add_argument("--parts", action="store_true",
+                    help="time each part of the tick in place, and its compiled calls hot")
     ap.add_argument("--floor", nargs=2, type=float, metavar=("RATE", "SECONDS"),
                     help=argparse.SUPPRESS)         # the bare loop's own process
     ap.add_argument("--floor-work-us", type=float, default=0.0, help=argparse.SUPPRESS)
@@ -540,7 +554,7 @@ def main() -> None:
                 floor_seconds=args.floor_seconds, with_witness=args.witness or
                 args.witness_compute_us > 0, witness_work_us=args.witness_compute_us,
                 cpus=tuple(args.cpus) if args.cpus else None,
-                sim_cpus=tuple(args.sim_cpus) if args.sim_cpus else None)
+                sim_cpus=tuple(args.sim_cpus) if args.sim_cpus else None, parts=args.parts)
     print_report(r)
     if args.json:
         Path(args.json).write_text(json.dumps(r, indent=2))
