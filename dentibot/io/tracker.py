@@ -85,6 +85,8 @@ DEFAULT_ZERO_LENGTH_MM = 20.0
 #: that a jerk of the patient is seen within a tick; six encoders then take about 24 % of a
 #: 1 Mbit/s bus (every 5th SYNC: 100 Hz, about 5 %).
 DEFAULT_TRANSMISSION_TYPE = 1
+#: How often a start waiting for its nodes' heartbeats looks at them (s).
+_CONFIRM_POLL_S = 0.002
 
 
 class IdentityMismatch(DeviceFault):
@@ -225,6 +227,7 @@ class TrackerDriver(CanOpenMaster):
         try:
             for nid in self.node_ids:
                 await self._start_node(nid)
+            await self._await_operational(self.node_ids)
             self._started = True
             if self.sync_producer:
                 self._sync_task = loop.create_task(self._sync_loop(), name=f"{self.name}-sync")
@@ -258,8 +261,8 @@ class TrackerDriver(CanOpenMaster):
         await self._configure_node(nid)
         node.rebooted, node.emcy = False, None
         node.hb_t = time.monotonic()        # the heartbeat is watched from the start on
+        node.nmt = None                      # unknown until a heartbeat after the start
         self._send_nmt(NmtCommand.START, nid)
-        node.nmt = NmtState.OPERATIONAL
         log.info("tracker encoder", device=self.name, node=hex(nid),
                  **{k: hex(v) for k, v in ident.items()})
 
@@ -322,9 +325,29 @@ class TrackerDriver(CanOpenMaster):
         if not self._started:
             raise DeviceFault(self.name, "not connected")
         now = time.monotonic()
-        for nid, node in self.nodes.items():
-            if self._node_fault(node, now) is not None:
-                await self._start_node(nid)
+        restarted = [nid for nid, node in self.nodes.items()
+                     if self._node_fault(node, now) is not None]
+        for nid in restarted:
+            await self._start_node(nid)
+        await self._await_operational(restarted)
+
+    async def _await_operational(self, node_ids) -> None:
+        """Until the heartbeat of each node of ``node_ids`` reports OPERATIONAL after its NMT
+        start, at most ``heartbeat_timeout_s``: the start is confirmed, not assumed. A
+        heartbeat the node sent before the start reached it still reports the state it left
+        (PRE-OPERATIONAL); taken for the node's state after the start, it would fault a running
+        node's string until the next heartbeat."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.heartbeat_timeout_s
+        while waiting := [n for n in node_ids if self.nodes[n].nmt is not NmtState.OPERATIONAL]:
+            if loop.time() >= deadline:
+                states = ", ".join(
+                    f"node 0x{n:02X} ({getattr(self.nodes[n].nmt, 'name', 'no heartbeat')})"
+                    for n in waiting)
+                raise ConnectTimeout(self.name, f"{states} on {self._bus_description()}",
+                                     "heartbeat reporting OPERATIONAL after the NMT start",
+                                     self.heartbeat_timeout_s)
+            await asyncio.sleep(_CONFIRM_POLL_S)
 
     # ================================================================== SDO client
     async def sdo_read(self, node_id: int, obj: str | OdObject) -> int:

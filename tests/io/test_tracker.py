@@ -137,7 +137,7 @@ async def test_identity_and_configuration_are_read_back():
 async def test_lengths_match_the_worlds_geometry_and_give_back_its_pose():
     async with rig() as r:
         s = await fresh_sample(r.drv)
-        assert s.status == (STRING_OK,) * 6 and s.ok
+        assert s.status == (STRING_OK,) * 6 and s.ok, r.drv.diagnose()
         want = expected_lengths(r.world, r.params)
         assert 50.0 < want.min() and want.max() < 80.0          # the mechanism's scale
         assert np.abs(np.array(s.lengths_mm) - want).max() <= LENGTH_TOL
@@ -224,6 +224,37 @@ async def test_no_encoder_on_the_bus_is_a_connect_timeout():
     with pytest.raises(ConnectTimeout, match="node 0x21.*device type 0x1000"):
         await drv.connect()
     await drv.close()
+
+
+async def test_a_heartbeat_sent_before_the_start_does_not_fault_a_running_node():
+    """Node 0x21's heartbeat, sent in PRE-OPERATIONAL, is on the bus when the NMT start
+    reaches it. The driver confirms each start by a later heartbeat reporting OPERATIONAL,
+    so the first samples after connect read every string (taken as the node's state after
+    the start, the old heartbeat faulted string 1 until the next one, 100 ms on)."""
+    async with rig(connect=False) as r:
+        node = r.nodes.node(0x21)
+        on_nmt = node.on_nmt
+
+        def heartbeat_then(cmd):
+            if cmd is co.NmtCommand.START:
+                node.send_heartbeat()           # still PRE-OPERATIONAL
+            on_nmt(cmd)
+        node.on_nmt = heartbeat_then
+        await r.drv.connect()
+        s = await fresh_sample(r.drv)
+        assert s.status == (STRING_OK,) * 6, r.drv.diagnose()
+
+
+async def test_a_node_that_does_not_start_is_a_connect_timeout_naming_it():
+    async with rig(connect=False, heartbeat_timeout_s=0.25) as r:
+        node = r.nodes.node(0x23)
+        on_nmt = node.on_nmt
+        node.on_nmt = lambda cmd: None if cmd is co.NmtCommand.START else on_nmt(cmd)
+        t0 = time.monotonic()
+        with pytest.raises(ConnectTimeout, match=r"node 0x23 \(PRE_OPERATIONAL\).*"
+                                                 "OPERATIONAL after the NMT start.*0.25 s"):
+            await r.drv.connect()
+        assert time.monotonic() - t0 < 5.0
 
 
 async def test_an_unexpected_vendor_is_refused():
