@@ -3,8 +3,9 @@ Jacobian, one Gauss-Newton update of the tooth's pose, and the rotation vector o
 matrix (its log map) with its inverse (Rodrigues' formula).
 
 :mod:`dentibot.control.strings` (the model, its forward kinematics and calibration) and
-:mod:`dentibot.runtime.tooth` (the tracked tooth of the control tick) call these; they are
-the only implementation of each formula::
+:mod:`dentibot.runtime.tooth` (the tracked tooth of the control tick) call these, and the
+Meca500 simulator's inverse kinematics takes its orientation error from :func:`matrix_rotvec`;
+they are the only implementation of each formula::
 
     l_i = || d_i ||,   d_i = p + R b_i - a_i,   u_i = d_i / l_i
     J_i = [u_i, (R b_i) x u_i]                       (dl = J (dp, dth), R <- exp([dth]x) R)
@@ -91,7 +92,7 @@ def matrix_rotvec(m: np.ndarray) -> np.ndarray:
     """The rotation vector (rad) of the rotation matrix ``m``, its angle in [0, pi]: the
     angle from ``atan2(|v|, (tr m - 1) / 2)`` with ``v`` the axial vector of
     ``(m - m^T) / 2`` (accurate at small angles, where an arccos of the trace is not); near
-    pi, where ``v`` vanishes, the axis from the largest diagonal term of ``(m + I) / 2``."""
+    pi, where ``v`` vanishes, the axis from the symmetric part of ``m``."""
     vx = 0.5 * (m[2, 1] - m[1, 2])
     vy = 0.5 * (m[0, 2] - m[2, 0])
     vz = 0.5 * (m[1, 0] - m[0, 1])

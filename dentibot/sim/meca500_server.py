@@ -91,6 +91,7 @@ import structlog
 from scipy.spatial.transform import Rotation, Slerp
 
 from dentibot.control.kinematics import damped_least_squares, matrix_from_pose, pose_from_matrix
+from dentibot.control.strings_kernels import matrix_rotvec
 from dentibot.errors import ConfigError, ProtocolError
 from dentibot.io.meca500_protocol import (
     ANOTHER_USER,
@@ -182,16 +183,6 @@ class _Queued:
 MOVES = frozenset({"joints", "jointsrel", "pose", "lin", "linreltrf", "linrelwrf"})
 #: A seed of the inverse kinematics: the simulated World's home posture.
 HOME_SEED = (0.0, -10.0, 20.0, 0.0, 80.0, 0.0)
-
-
-def _rotvec(r: np.ndarray) -> np.ndarray:
-    """Rotation vector (rad) of the rotation matrix ``r``."""
-    v = 0.5 * np.array((r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]))
-    c = max(-1.0, min(1.0, (float(np.trace(r)) - 1.0) / 2.0))
-    sn = float(np.linalg.norm(v))
-    if c > 0.0 or sn > 1e-6:
-        return v * (math.atan2(sn, c) / sn) if sn > 1e-15 else v
-    return Rotation.from_matrix(r).as_rotvec()        # near 180 deg
 
 
 class _PlanError(Exception):
@@ -821,7 +812,7 @@ class Meca500Server:
         for _ in range(IK_MAX_ITER):
             t = kin.fk(q)
             dp = target[:3, 3] - t[:3, 3]
-            dr = _rotvec(target[:3, :3] @ t[:3, :3].T)
+            dr = matrix_rotvec(target[:3, :3] @ t[:3, :3].T)
             if np.linalg.norm(dp) < IK_TOL_MM and np.linalg.norm(dr) < IK_TOL_RAD:
                 return q
             dq = damped_least_squares(kin.jacobian(q), np.concatenate([dp, dr]),
