@@ -141,17 +141,17 @@ def track(a: np.ndarray, b: np.ndarray, m: np.ndarray, R: np.ndarray, p: np.ndar
 
 
 def warm_up() -> None:
-    """Compile (or load from the cache) every kernel for the types the tracker passes: the
-    geometry's anchors are read-only arrays. Called once, at import."""
+    """Compile (or load from the cache) every kernel for the types its callers pass: the
+    anchors of a :class:`~dentibot.control.strings.StringGeometry` are read-only arrays, the
+    pose and lengths writable copies. Called once, at import."""
     from dentibot.control.linalg import readonly
 
     a = readonly(np.eye(6, 3) * 50.0 + 1.0)
     b = readonly(np.eye(6, 3) * 10.0)
     eye, p = np.eye(3), np.zeros(3)
-    for aa, bb in ((a, b), (np.array(a), np.array(b))):
-        lengths(aa, bb, eye, p)
-        jacobian(aa, bb, eye, p)
-        track(aa, bb, np.ones(6) * 40.0, eye, p, 1)
+    lengths(a, b, eye, p)
+    jacobian(a, b, eye, p)
+    track(a, b, np.ones(6) * 40.0, eye, p, 1)
     rotvec_matrix(p)
     matrix_rotvec(eye)
 
