@@ -49,7 +49,9 @@ KERNELS = (
 HOT_CALLS = 2000
 
 
-def _timed(f, record):
+def _timed(f, record, keep_args=None):
+    """``f`` wrapped: each call's duration (s) to ``record``, and its positional arguments
+    to ``keep_args`` when given (for the hot replay)."""
     if inspect.iscoroutinefunction(f):
         @functools.wraps(f)
         async def timed_async(*a, **k):
@@ -62,6 +64,8 @@ def _timed(f, record):
 
     @functools.wraps(f)
     def timed(*a, **k):
+        if keep_args is not None:
+            keep_args(a)
         t = time.perf_counter()
         try:
             return f(*a, **k)
@@ -81,18 +85,9 @@ def timed_parts():
         saved.append((owner, name, getattr(owner, name)))
         setattr(owner, name, _timed(getattr(owner, name), times.setdefault(label, []).append))
     for module, name, label in KERNELS:
-        f = getattr(module, name)
-        saved.append((module, name, f))
-        record = times.setdefault(label, []).append
-
-        def keep(*a, _f=f, _label=label, _record=record):
-            last_args[_label] = a
-            t = time.perf_counter()
-            try:
-                return _f(*a)
-            finally:
-                _record(time.perf_counter() - t)
-        setattr(module, name, keep)
+        saved.append((module, name, getattr(module, name)))
+        setattr(module, name, _timed(getattr(module, name), times.setdefault(label, []).append,
+                                     functools.partial(last_args.__setitem__, label)))
     state = {"times": times, "last_args": last_args}
     try:
         yield state
