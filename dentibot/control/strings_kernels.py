@@ -5,7 +5,9 @@ matrix (its log map) with its inverse (Rodrigues' formula).
 :mod:`dentibot.control.strings` (the model, its forward kinematics and calibration) and
 :mod:`dentibot.runtime.tooth` (the tracked tooth of the control tick) call these, and the
 Meca500 simulator's inverse kinematics takes its orientation error from :func:`matrix_rotvec`;
-they are the only implementation of each formula::
+they are the only implementation of the strings' formulas and of the log map (the simulated
+patient's turns keep Rodrigues' formula in a scalar form of their own,
+:func:`dentibot.sim.patient.axis_angle_matrix`, for a world tick without arrays)::
 
     l_i = || d_i ||,   d_i = p + R b_i - a_i,   u_i = d_i / l_i
     J_i = [u_i, (R b_i) x u_i]                       (dl = J (dp, dth), R <- exp([dth]x) R)
