@@ -4,7 +4,7 @@
                                                  [--sleep-seconds 10] [--load N] [--json FILE]
                                                  [--witness] [--witness-compute-us US]
                                                  [--cpus N ...] [--sim-cpus N ...]
-                                                 [--parts]
+                                                 [--parts] [--census]
 
 1. Starts ``dentibot sim serve`` in a child process (loopback, free ports), connects the four
    real drivers (Meca500 TCP, Net F/T UDP, EPOS4 via socketcand, Modbus TCP).
@@ -50,6 +50,11 @@ tick.
 
 ``--parts`` times each part of the tick where it runs, and the compiled calls again back to
 back (:mod:`tick_parts`): what each part costs in place, and how much more than hot.
+``--census`` times every callback the control process's event loop runs while the loop
+ticks (:mod:`loop_census`): the tick against the streams' parsing, the drive's cycle and
+the I/O polling, per tick. ``overrun_ticks`` (JSON) gives each overrun's lateness and
+compute (us): a late start is the loop busy or the machine stalled before the tick, a long
+compute the tick itself slowed.
 
 Targets: 500 Hz p99 lateness <= 100 us, zero overruns over 60 s.
 """
@@ -75,6 +80,7 @@ import structlog
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import loop_census
 from benchutil import fmt, quantiles
 from tick_parts import figures, print_figures, timed_parts
 
@@ -239,12 +245,14 @@ async def control_loop(d, world: World, clock: Clock, seconds: float,
     comp: list[float] = []
 
     overrun_at: list[float] = []
+    overrun_ticks: list[list[float]] = []        # (lateness us, compute us) of each
 
     def sink(row: dict) -> None:
         late.append(row["lateness_us"])
         comp.append(row["compute_us"])
         if row["overrun"]:                 # the tick's deadline, on the monotonic clock
             overrun_at.append(time.monotonic() - (row["lateness_us"] + row["compute_us"]) / 1e6)
+            overrun_ticks.append([round(row["lateness_us"]), round(row["compute_us"])])
 
     proc = Procedure.over(d, RuntimeConfig(period_s=clock.period_s, thresholds=LOOSE,
                                            cpus=cpus),
@@ -272,6 +280,7 @@ async def control_loop(d, world: World, clock: Clock, seconds: float,
     s["streams"] = {k: (c1[k] - c0[k]) if c0[k] is not None else None for k in c0}
     s.update(state=rt.state, faults=list(rt.treatment.fault_causes))
     s["overrun_at"] = overrun_at
+    s["overrun_ticks"] = overrun_ticks
     return s
 
 
@@ -403,7 +412,8 @@ async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float
                      round_trip_n: int = 20, load: int = 0,
                      floor_seconds: float | None = None, with_witness: bool = False,
                      witness_work_us: float = 0.0, cpus: tuple[int, ...] | None = None,
-                     sim_cpus: tuple[int, ...] | None = None, parts: bool = False) -> dict:
+                     sim_cpus: tuple[int, ...] | None = None, parts: bool = False,
+                     census: bool = False) -> dict:
     ports = {"meca": free_port(), "http": free_port(), "modbus": free_port(),
              "can": free_port(), "netft": free_port(socket.SOCK_DGRAM)}
     serve = _serve(ports, sim_cpus)  # started once, before any timing
@@ -424,11 +434,14 @@ async def main_async(seconds: float = 60.0, rates=(500.0,), sleep_seconds: float
                 srv0, t0 = cpu_seconds(serve.pid), time.perf_counter()
                 witness = (_witness(rate, seconds + WITNESS_EXTRA_S, witness_work_us)
                            if with_witness else None)
-                with timed_parts() if parts else contextlib.nullcontext() as timing:
+                with timed_parts() if parts else contextlib.nullcontext() as timing, \
+                        loop_census.census() if census else contextlib.nullcontext() as seen:
                     r["absolute_deadlines"] = await control_loop(
                         d, world, RealTimeClock(1.0 / rate), seconds, cpus)
                 if timing is not None:
                     r["parts"] = figures(timing)
+                if seen is not None:
+                    r["census"] = loop_census.figures(seen, r["absolute_deadlines"]["ticks"])
                 if witness is not None:   # (its end awaited off the loop: the streams go on)
                     r["absolute_deadlines"].update(await asyncio.to_thread(
                         _attributed, r["absolute_deadlines"], witness))
@@ -456,13 +469,13 @@ def measure(seconds: float = 60.0, rates=(500.0, 1000.0), sleep_seconds: float =
             round_trip_n: int = 20, load: int = 0, floor_seconds: float | None = None,
             with_witness: bool = False, witness_work_us: float = 0.0,
             cpus: tuple[int, ...] | None = None, sim_cpus: tuple[int, ...] | None = None,
-            parts: bool = False) -> dict:
+            parts: bool = False, census: bool = False) -> dict:
     """Round trips, then each rate with absolute deadlines, then each with plain sleep, then
     each rate's platform floor (``floor_seconds``, default ``seconds``), with ``load``
     CPU-bound jobs running throughout."""
     return asyncio.run(main_async(seconds, rates, sleep_seconds, round_trip_n, load,
                                   floor_seconds, with_witness, witness_work_us, cpus,
-                                  sim_cpus, parts))
+                                  sim_cpus, parts, census))
 
 
 def _cpu_list(cpus) -> str:
@@ -510,6 +523,9 @@ def print_report(r: dict) -> None:
         if "parts" in res:
             print(f"{rate:>5} Hz the tick's parts, in place:")
             print_figures(res["parts"], indent="      ")
+        if "census" in res:
+            print(f"{rate:>5} Hz the event loop's callbacks while it ticks:")
+            loop_census.print_figures(res["census"], indent="      ")
     for k, v in r["round_trips"].items():
         print(f"round trip {k:>13}: median {fmt(v['median_ms'], '.2f')} ms, max "
               f"{fmt(v['max_ms'], '.2f')} ms (n={v['n']})")
@@ -539,6 +555,8 @@ def main() -> None:
                     help="keep the simulators' process to these CPUs (sim serve --cpus)")
     ap.add_argument("--parts", action="store_true",
                     help="time each part of the tick in place, and its compiled calls hot")
+    ap.add_argument("--census", action="store_true",
+                    help="time every callback of the control process's event loop")
     ap.add_argument("--floor", nargs=2, type=float, metavar=("RATE", "SECONDS"),
                     help=argparse.SUPPRESS)         # the bare loop's own process
     ap.add_argument("--floor-work-us", type=float, default=0.0, help=argparse.SUPPRESS)
@@ -554,7 +572,8 @@ def main() -> None:
                 floor_seconds=args.floor_seconds, with_witness=args.witness or
                 args.witness_compute_us > 0, witness_work_us=args.witness_compute_us,
                 cpus=tuple(args.cpus) if args.cpus else None,
-                sim_cpus=tuple(args.sim_cpus) if args.sim_cpus else None, parts=args.parts)
+                sim_cpus=tuple(args.sim_cpus) if args.sim_cpus else None, parts=args.parts,
+                census=args.census)
     print_report(r)
     if args.json:
         Path(args.json).write_text(json.dumps(r, indent=2))

@@ -5,7 +5,8 @@ bus (kernel SocketCAN, python-can's ``virtual`` bus, any python-can interface, a
 factory, or a socketcand server through :class:`SocketcandBus`), in a thread and bounded by
 ``connect_timeout_s`` (a silent peer is a :class:`~dentibot.io.interfaces.ConnectTimeout`);
 reception by COB-ID (frames handed to the event loop in batches by
-:class:`~dentibot.io.can_reader.LoopReader`); expedited SDO transfers, one outstanding at a
+:class:`~dentibot.io.can_reader.LoopReader`, which the loop runs itself for a bus with a file
+descriptor); expedited SDO transfers, one outstanding at a
 time, each bounded by ``sdo_timeout_s`` (an abort is a :class:`SdoAbort` with its CiA 301
 abort code); NMT commands; the heartbeat consumer's parameters (CiA 301: a node silent for
 longer than ``heartbeat_timeout_s`` is lost); the master's cyclic task (SYNC producer);
@@ -41,6 +42,8 @@ _READER_TIMEOUT_S = 0.05
 
 #: socketcand's default TCP port.
 SOCKETCAND_PORT = 29536
+#: How long closing a socketcand connection waits for the server to close its side.
+_CLOSE_DRAIN_S = 0.1
 #: Longest socketcand message accepted (characters from ``<`` to ``>``); a frame line is
 #: under 60.
 _SOCKETCAND_MAX_CHARS = 512
@@ -190,6 +193,11 @@ class SocketcandBus(can.BusABC):
         return " ".join(["<", "send", sid, f"{len(data):X}", *(f"{b:02X}" for b in data), ">"])
 
     # ---------------------------------------------------------------- BusABC
+    def fileno(self) -> int:
+        """The connection's socket: an event loop watches it for frames (python-can's
+        convention, as its SocketCAN bus)."""
+        return self._sock.fileno()
+
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         while True:
             if self._frames:
@@ -236,8 +244,25 @@ class SocketcandBus(can.BusABC):
                        for cid, data in frames).encode("ascii")
 
     def shutdown(self) -> None:
+        """Close the connection gracefully: our end is shut first (the server reads every
+        frame sent so far, then the end of the stream), and what the server still sends is
+        read and dropped until it closes too, for at most ``_CLOSE_DRAIN_S``. A socket
+        closed with frames unread in it sends a reset instead, and a reset makes the
+        server's kernel drop what the server had not read yet: the last frames sent
+        (the drive's disable, the NMT stop) would be lost."""
         super().shutdown()
-        self._sock.close()
+        sock = self._sock
+        try:
+            sock.shutdown(socket.SHUT_WR)
+            deadline = time.monotonic() + _CLOSE_DRAIN_S
+            while (left := deadline - time.monotonic()) > 0:
+                sock.settimeout(left)
+                if not sock.recv(4096):
+                    break
+        except OSError:                     # (TimeoutError included) reset, gone, or silent
+            pass
+        finally:
+            sock.close()
 
 
 

@@ -124,3 +124,80 @@ async def test_stop_joins_within_the_receive_timeout(timeout):
     assert not reader._thread.is_alive()
     tx.shutdown()
     rx.shutdown()
+
+
+# ---------------------------------------------------------------- a bus with a descriptor
+async def _socketcand_peer():
+    """A socketcand server on loopback that greets, accepts the handshake and then writes
+    what the test puts in its queue (None: close the connection)."""
+    out: asyncio.Queue = asyncio.Queue()
+
+    async def serve(reader, writer):
+        writer.write(b"< hi >")
+        for _ in range(2):                          # < open vcan0 >, < rawmode >
+            await reader.readuntil(b">")
+            writer.write(b"< ok >")
+        while (chunk := await out.get()) is not None:
+            writer.write(chunk)
+            await writer.drain()
+            await asyncio.sleep(0.01)               # each chunk in a read of its own
+        writer.close()
+
+    server = await asyncio.start_server(serve, "127.0.0.1", 0)
+    return server, server.sockets[0].getsockname()[1], out
+
+
+async def _open_socketcand(port: int):
+    """Our socketcand client (its handshake blocks: in a short-lived thread)."""
+    from dentibot.io.canopen_master import SocketcandBus, in_thread
+
+    return await in_thread(lambda: SocketcandBus("vcan0", "127.0.0.1", port), "open-bus")
+
+
+async def test_a_bus_with_a_descriptor_is_read_on_the_loop_in_order_across_split_reads():
+    server, port, out = await _socketcand_peer()
+    bus = await _open_socketcand(port)
+    got: list[tuple[int, bytes]] = []
+    errors: list[Exception] = []
+    loop = asyncio.get_running_loop()
+    reader = LoopReader(bus, lambda m: got.append((m.arbitration_id, bytes(m.data))),
+                        on_error=errors.append, loop=loop)
+    try:
+        assert not reader.threaded            # the loop watches the socket: no thread
+        # three frames: glued together, one split in the middle of its data, an empty one
+        await out.put(b"< frame 181 1.000001 0102 >< frame 281 1.000002 A")
+        await out.put(b"ABBCC >< frame 701 1.000003  >")
+        await _until(lambda: len(got) == 3)
+        assert got == [(0x181, b"\x01\x02"), (0x281, b"\xAA\xBB\xCC"), (0x701, b"")]
+        assert reader.frames == 3
+        await out.put(None)                   # the server closes: told once, then silence
+        await _until(lambda: bool(errors))
+        await asyncio.sleep(0.05)
+        assert len(errors) == 1 and "closed the connection" in str(errors[0])
+        assert reader.exception is errors[0]
+        assert not loop.remove_reader(bus.fileno())    # no longer watched
+    finally:
+        reader.stop()
+        bus.shutdown()
+        server.close()
+        await server.wait_closed()
+
+
+async def test_stop_unwatches_a_bus_with_a_descriptor():
+    server, port, out = await _socketcand_peer()
+    bus = await _open_socketcand(port)
+    got: list[can.Message] = []
+    loop = asyncio.get_running_loop()
+    reader = LoopReader(bus, got.append, loop=loop)
+    try:
+        reader.stop()
+        assert reader.stopped and not loop.remove_reader(bus.fileno())
+        await out.put(b"< frame 181 1.000001 01 >")
+        await asyncio.sleep(0.1)
+        assert got == []
+    finally:
+        await out.put(None)
+        bus.shutdown()
+        await asyncio.sleep(0.05)             # the server's side closes
+        server.close()
+        await server.wait_closed()

@@ -590,3 +590,41 @@ async def test_the_drivers_client_reports_refusals_and_a_closed_connection():
                 await _in_thread(lambda: bus.recv(2.0))
         finally:
             bus.shutdown()
+
+
+async def test_closing_the_client_delivers_its_last_frames_although_frames_were_unread():
+    """Frames the server sent that the client has not read when it closes: a plain close
+    sends a reset, and the reset makes the server's kernel drop what the server had not
+    read yet, here the NMT command sent last (as a driver's close sends it)."""
+    from dentibot.io.canopen_master import in_thread
+
+    received: list[bytes] = []
+    done = asyncio.Event()
+
+    async def serve(reader, writer):
+        writer.write(b"< hi >")
+        for _ in range(2):                            # < open vcan0 >, < rawmode >
+            await reader.readuntil(b">")
+            writer.write(b"< ok >")
+        writer.write(b"< frame 701 1.000000 05 >" * 200)  # the client will not read these
+        await writer.drain()
+        await asyncio.sleep(0.1)                      # busy: the client sends and closes
+        try:
+            received.append(await reader.read())      # up to the end of the stream
+        except ConnectionResetError:
+            received.append(b"(reset: unread bytes dropped)")
+        writer.close()
+        done.set()
+
+    server = await asyncio.start_server(serve, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    try:
+        bus = await in_thread(lambda: SocketcandBus("vcan0", "127.0.0.1", port), "open")
+        await asyncio.sleep(0.02)                      # the server's frames are in flight
+        bus.send(can.Message(arbitration_id=0x000, data=b"\x80\x00", is_extended_id=False))
+        await in_thread(bus.shutdown, "close")
+        await asyncio.wait_for(done.wait(), 2.0)
+        assert received and received[0].endswith(b"< send 000 2 80 00 >"), received
+    finally:
+        server.close()
+        await server.wait_closed()
