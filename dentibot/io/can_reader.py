@@ -114,12 +114,20 @@ class LoopReader:
             self.loop.call_soon_threadsafe(self.loop.remove_reader, fd)
 
     def _on_readable(self) -> None:
+        """The bus is readable: the frames waiting, through the bus's ``drain(limit)`` where
+        it has one (:class:`~dentibot.io.canopen_master.SocketcandBus`) and no receive
+        filters are set, else ``recv(0)`` until none is left."""
         if self._stopped:
             return
-        bus, batch = self.bus, []
+        bus = self.bus
+        drain = getattr(bus, "drain", None) if bus.filters is None else None
+        batch: list[can.Message] = []
         try:
-            while len(batch) < MAX_BATCH and (msg := bus.recv(0)) is not None:
-                batch.append(msg)
+            if drain is not None:               # every frame there is, in one read
+                batch = drain(MAX_BATCH)
+            else:
+                while len(batch) < MAX_BATCH and (msg := bus.recv(0)) is not None:
+                    batch.append(msg)
         except Exception as exc:  # noqa: BLE001 - the link is gone: told to the loop
             self.exception = exc
             self._unwatch()

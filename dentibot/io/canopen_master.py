@@ -225,6 +225,30 @@ class SocketcandBus(can.BusABC):
             self._text += data.decode("ascii", "replace")
             timeout = 0.0
 
+    def drain(self, limit: int) -> list[can.Message]:
+        """Up to ``limit`` frames that can be had now without waiting, in order: what the
+        socket holds is read once, and the complete frames in the buffer are parsed (the
+        rest stay for the next call). For an event loop's callback when the socket is
+        readable (:class:`~dentibot.io.can_reader.LoopReader`): one read and no waiting, where
+        python-can's ``recv(0)`` per frame polls the socket once for each. The end of the
+        stream, or a failed read, is :class:`can.CanOperationError`."""
+        sock = self._sock
+        try:
+            if select.select([sock], [], [], 0)[0]:
+                data = sock.recv(65536)
+                if not data:
+                    raise can.CanOperationError(f"{self.channel_info}: the server closed the "
+                                                "connection")
+                self._text += data.decode("ascii", "replace")
+        except (OSError, ValueError) as exc:
+            raise can.CanOperationError(f"{self.channel_info}: receive failed: {exc}") from exc
+        frames = self._frames
+        while len(frames) < limit and (msg := self._next_message()) is not None:
+            if msg.startswith("< frame "):
+                self._keep_frame(msg)
+        out = [frames.popleft() for _ in range(min(limit, len(frames)))]
+        return out
+
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self.send_text(self.send_line(msg).encode("ascii"))
 

@@ -2,7 +2,9 @@
 
 - :class:`RealTimeClock`: absolute deadlines ``t0 + k * period``. It waits on a kernel timer
   armed at the deadline (Linux ``timerfd``, watched by the event loop), so the loop keeps
-  serving the device streams while it waits, sleeps, and wakes within microseconds; without
+  serving the device streams while it waits, sleeps, and wakes within microseconds; it
+  wakes a little early and spins to the deadline without yielding, so that no stream's
+  callback runs between the deadline and the tick (they run in the slack after it); without
   one it sleeps coarsely with ``asyncio.sleep`` until ``spin_s`` before the deadline, then
   yields to the loop (``asyncio.sleep(0)``) until the deadline passes. Plain
   ``asyncio.sleep(period)`` rounds its timeout up to whole milliseconds (epoll), which at
@@ -33,7 +35,10 @@ from dentibot.errors import ConfigError
 from dentibot.runtime.deadline_timer import deadline_timer
 
 #: the kernel timer wakes the loop this long before the deadline, which it then reaches by
-#: yielding: a thread's wake-up takes tens of microseconds (timer slack, scheduling)
+#: spinning: a thread's wake-up takes tens of microseconds (timer slack, scheduling). Not by
+#: yielding to the loop: each yield let the streams' callbacks that had just become ready
+#: run first (measured at 500 Hz under load: 5.4 resumptions per tick, p99 lateness 140-210
+#: us and 1-7 overruns a minute; spinning: p99 125 us and none in the same conditions)
 _WAKE_EARLY_S = 100e-6
 
 #: Upper edges (us) of the lateness histogram bins; the last bin is open.
@@ -141,7 +146,7 @@ class RealTimeClock(Clock):
     (``time.perf_counter``, the default) it waits on a kernel timer armed at the deadline
     (:class:`~dentibot.runtime.deadline_timer.DeadlineTimer`): the event loop sleeps,
     serving the device streams, and wakes within microseconds of the deadline, leaving the
-    CPU to everything else meanwhile. Elsewhere (or ``timer=False``) it sleeps coarsely and
+    CPU to everything else meanwhile; the last ``_WAKE_EARLY_S`` it spins. Elsewhere (or ``timer=False``) it sleeps coarsely and
     spins the last ``spin_s``."""
 
     def __init__(self, period_s: float = 0.002, spin_s: float = 0.0015,
@@ -179,9 +184,10 @@ class RealTimeClock(Clock):
         if self._timer is not None:
             if deadline - now > _WAKE_EARLY_S:
                 await self._timer.wait_until(deadline - _WAKE_EARLY_S)
-            while self._clock() < deadline:      # the last microseconds, if any
-                await asyncio.sleep(0)
-            return self._clock() - deadline
+            clock = self._clock
+            while clock() < deadline:            # the last microseconds, if any
+                pass
+            return clock() - deadline
         coarse = deadline - self.spin_s - now
         if coarse > 0.0:
             await asyncio.sleep(coarse)

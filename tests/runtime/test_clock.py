@@ -293,3 +293,42 @@ async def test_a_real_time_run_is_kept_to_its_cpus_while_it_ticks():
         await proc.run_for(0.05)
     assert seen and all(s == {last} for s in seen)
     assert os.sched_getaffinity(0) == set(_CPUS)
+
+
+@pytest.mark.skipif(deadline_timer() is None, reason="no timerfd on this system")
+async def test_the_waiter_runs_before_the_streams_that_became_ready_after_its_deadline():
+    """The deadline first: when the timer's expiry and a stream's data are seen in the same
+    turn of the loop, the waiting task (the tick) resumes before the stream's callback,
+    which still runs right after it."""
+    import socket
+
+    loop = asyncio.get_running_loop()
+    timer = deadline_timer()
+    a, b = socket.socketpair()
+    order: list[str] = []
+
+    def on_data() -> None:
+        b.recv(16)
+        order.append("stream")
+
+    loop.add_reader(b.fileno(), on_data)
+    try:
+        async def tick() -> None:
+            await timer.wait_until(due)
+            order.append("tick")
+
+        due = time.perf_counter() + 0.005
+        waiter = asyncio.ensure_future(tick())
+        await asyncio.sleep(0)                                   # armed, waiting
+        time.sleep(0.01)   # noqa: ASYNC251 - the loop held: the timer expires first ...
+        a.send(b"x")       # ... then the stream's data arrive, both seen in one turn
+        async with asyncio.timeout(1.0):
+            await waiter
+            while len(order) < 2:
+                await asyncio.sleep(0)
+        assert order == ["tick", "stream"]
+    finally:
+        loop.remove_reader(b.fileno())
+        a.close()
+        b.close()
+        timer.close()
