@@ -5,21 +5,14 @@ resumes, the protocol it feeds), and the loop given back as it was. No speed is 
 from __future__ import annotations
 
 import asyncio
-import sys
 from asyncio import events
-from pathlib import Path
 
 import pytest
 
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
-
 
 @pytest.fixture
-def loop_census(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
-    import loop_census
-    yield loop_census
-    sys.modules.pop("loop_census", None)
+def loop_census(bench_module):
+    return bench_module("loop_census")
 
 
 def plain() -> None:

@@ -4,9 +4,6 @@ asserted (speed belongs in benchmarks/)."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
 
 from dentibot.control import tick_kernels
@@ -14,15 +11,10 @@ from dentibot.runtime import control_task
 from dentibot.runtime import supervisor_kernels as sk
 from dentibot.testing import simulated_procedure
 
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
-
 
 @pytest.fixture
-def tick_parts(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
-    import tick_parts
-    yield tick_parts
-    sys.modules.pop("tick_parts", None)
+def tick_parts(bench_module):
+    return bench_module("tick_parts")
 
 
 async def test_every_tick_is_timed_and_the_runtime_is_given_back(tick_parts):
