@@ -50,7 +50,13 @@ Key figures of ``--json`` (all measured in the same run):
   raised (``fifo``, ``nice`` or empty); ``platform_lateness_us_p99_500hz``,
   ``platform_overruns_500hz``: the platform's floor, a bare loop with the same clock and
   priority under the same load that only waits for its deadlines (in its own process): what
-  the machine itself misses, which no control loop on it can do better than.
+  the machine itself misses, which no control loop on it can do better than;
+  ``witness_overruns_500hz``, ``witness_stalls_500hz``, ``witness_work_us``: a loop of its
+  own beside the control loop in the same minutes, with ``witness_work_us`` of arithmetic per
+  tick (``realtime_loop.py --witness-compute-us``), its overruns and its wake-ups 0.5 ms late
+  or more: on a shared machine the minutes differ, and the witness says whether these were
+  quiet ones (``overruns_shared_with_witness_500hz``: the loop's overruns that began in one
+  of its stalls).
 """
 
 from __future__ import annotations
@@ -107,6 +113,7 @@ class Sizes:
     round_trips: int = 20
     rates: tuple[float, ...] = (500.0, 1000.0)
     realtime_load: int = 1          # CPU-bound jobs beside the real-time loop
+    witness_work_us: float = 80.0   # the witness's arithmetic per tick (0: a bare witness)
     profile_s: float = 20.0
     tick_repeats: int = 3
     population_n: int = 64
@@ -159,7 +166,9 @@ def collect(sizes: Sizes = FULL, sections=SECTIONS, profile: bool = False,
             f"{sizes.realtime_load} CPU-bound job(s) beside them)")
         res["realtime"] = realtime_loop.measure(sizes.realtime_s, sizes.rates, sizes.sleep_s,
                                                 sizes.round_trips, load=sizes.realtime_load,
-                                                floor_seconds=sizes.floor_s)
+                                                floor_seconds=sizes.floor_s,
+                                                with_witness=True,
+                                                witness_work_us=sizes.witness_work_us)
     res["elapsed_s"] = time.perf_counter() - t0
     res["load_average_after"] = load_average()
     return res
@@ -238,6 +247,13 @@ def flatten(res: dict) -> dict:
                 out[f"platform_lateness_us_p99_{hz}"] = floor["lateness_us_exact"]["p99"]
                 out[f"platform_lateness_us_max_{hz}"] = floor["lateness_us_exact"]["max"]
                 out[f"platform_overruns_{hz}"] = floor["overruns"]
+            witness = r["absolute_deadlines"].get("witness")
+            if witness is not None:
+                out["witness_work_us"] = witness["work_us"]
+                out[f"witness_overruns_{hz}"] = witness["overruns"]
+                out[f"witness_stalls_{hz}"] = witness["stalls"]
+                out[f"overruns_shared_with_witness_{hz}"] = \
+                    r["absolute_deadlines"]["overruns_shared_with_witness"]
             for prefix, name in (("", "absolute_deadlines"), ("sleep_", "plain_asyncio_sleep")):
                 s = r.get(name)
                 if s is None:
@@ -373,6 +389,13 @@ def print_table(res: dict, flat: dict) -> None:
                          ("met" if all(flat["targets_met"].get(k, False) for k in
                                        ("lateness_us_p99_500hz", "overruns_500hz"))
                           else "NOT met") if is500 else ""))
+            w = s.get("witness")
+            if w is not None:
+                rows.append((f"  witness at {float(rate):g} Hz: a loop beside it, same minutes, "
+                             f"{w['work_us']:g} us of arithmetic per tick", "",
+                             f"{w['overruns']} overruns, {w['stalls']} stalls >= 0.5 ms",
+                             f"{s['overruns_shared_with_witness']} of the loop's overruns "
+                             "began in one", ""))
             fl = r.get("platform_floor")
             if fl is not None:
                 e3 = fl["lateness_us_exact"]

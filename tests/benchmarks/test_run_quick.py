@@ -35,7 +35,8 @@ BASELINES = ("tick_numpy_dh_us_median", "tick_numpy_dh_ratio", "tick_rtb_us_medi
              "lockstep_speed_factor", "lockstep_core_speed_factor_rows",
              "lockstep_core_speed_factor_recorder",
              "sleep_lateness_us_p99_500hz", "sleep_overruns_500hz",
-             "platform_lateness_us_p99_500hz", "platform_overruns_500hz", "recording_ticks_per_s",
+             "platform_lateness_us_p99_500hz", "platform_overruns_500hz",
+             "witness_overruns_500hz", "witness_stalls_500hz", "recording_ticks_per_s",
              "recording_mb_per_min", "roundtrip_ms_median_arm", "ft_lost_500hz",
              "population_over_single")
 
