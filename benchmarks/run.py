@@ -391,11 +391,11 @@ def print_table(res: dict, flat: dict) -> None:
                           else "NOT met") if is500 else ""))
             w = s.get("witness")
             if w is not None:
-                rows.append((f"  witness at {float(rate):g} Hz: a loop beside it, same minutes, "
-                             f"{w['work_us']:g} us of arithmetic per tick", "",
+                rows.append(((f"  witness at {float(rate):g} Hz: a loop beside it, same "
+                              f"minutes, {w['work_us']:g} us of arithmetic per tick"), "",
                              f"{w['overruns']} overruns, {w['stalls']} stalls >= 0.5 ms",
-                             f"{s['overruns_shared_with_witness']} of the loop's overruns "
-                             "began in one", ""))
+                             (f"{s['overruns_shared_with_witness']} of the loop's overruns "
+                              "began in one"), ""))
             fl = r.get("platform_floor")
             if fl is not None:
                 e3 = fl["lateness_us_exact"]
