@@ -16,6 +16,7 @@ teardown.
 from __future__ import annotations
 
 import asyncio
+import math
 import select
 import socket
 import threading
@@ -336,6 +337,11 @@ async def in_thread(fn: Callable[[], Any], name: str) -> Any:
             th.join(timeout=1.0)
 
 
+def _resolve(fut: asyncio.Future, value: object) -> None:
+    if not fut.done():
+        fut.set_result(value)
+
+
 #: A frame handler: (payload, time of reception on the monotonic clock).
 Handler = Callable[[bytes, float], None]
 
@@ -395,6 +401,9 @@ class CanOpenMaster:
         self.sdo_aborts = 0
         self.sdo_timeouts = 0
         self.overruns = 0           # own cycles skipped because the loop was late
+        self._ask: asyncio.Future | None = None     # the own cycle's wait (cycle_soon)
+        self._asked_t = -math.inf   # when cycle_soon was last called (loop time)
+        self._cycle_t = -math.inf   # when the own cycle last ran (loop time)
         self._link_error: str | None = None
         self._bus: can.BusABC | None = None
         self._frames_sent: tuple | None = None   # see _send_frames
@@ -522,11 +531,18 @@ class CanOpenMaster:
         """Await ``tick`` every ``sync_period_s`` (event loop clock), for ever. A tick failing
         with :class:`~dentibot.errors.DeviceFault` is skipped (it was counted and logged
         where it failed); more than a period late, the cycle skips ahead instead of bursting
-        and counts the cycles skipped in ``overruns``."""
+        and counts the cycles skipped in ``overruns``.
+
+        Paced by a control task (:meth:`cycle_soon` after each of its ticks), a cycle runs
+        right after the tick that asks for it, and the schedule follows the ticks; while
+        they come, a cycle that nobody asks for waits half a period longer than its time
+        before it runs on its own (a tick a little late does not get a cycle of its own and
+        one more right after), and when they stop the cycle keeps its own time again."""
         loop = asyncio.get_running_loop()
         period = self.sync_period_s
         next_t = loop.time()
         while True:
+            self._cycle_t = loop.time()
             try:
                 await tick()
             except DeviceFault:
@@ -536,7 +552,32 @@ class CanOpenMaster:
             if now - next_t > period:   # more than a period late: skip, do not burst
                 self.overruns += int((now - next_t) / period)
                 next_t = now
-            await asyncio.sleep(max(0.0, next_t - now))
+            paced = now - self._asked_t < 2.0 * period
+            if await self._until(next_t + (0.5 * period if paced else 0.0)):
+                next_t = loop.time()    # asked for: the ticks set the schedule
+
+    async def _until(self, t: float) -> bool:
+        """Wait until the loop's time ``t`` or until :meth:`cycle_soon`; True when asked."""
+        loop = asyncio.get_running_loop()
+        fut = self._ask = loop.create_future()
+        timer = loop.call_at(t, _resolve, fut, False)
+        try:
+            return await fut
+        finally:
+            timer.cancel()
+            self._ask = None
+
+    def cycle_soon(self) -> None:
+        """Run the own cycle now instead of at its time (a control task calls it after each
+        tick, once that tick's commands are set: they go out with the SYNC of that tick,
+        not up to a period later, and the SYNC keeps the tick's timing, to the microsecond,
+        rather than the event loop's timers, rounded to whole milliseconds). Ignored within
+        half a period of the last cycle (a tick faster than the cycle) or when the own cycle
+        does not run."""
+        self._asked_t = now = asyncio.get_running_loop().time()
+        ask = self._ask
+        if ask is not None and now - self._cycle_t >= 0.5 * self.sync_period_s:
+            _resolve(ask, True)
 
     # ================================================================== reception
     def _on_message(self, msg: can.Message) -> None:

@@ -64,8 +64,11 @@ Cyclic exchange (every ``sync_period_s``): RxPDO2 (target position, profile velo
 (controlword, target velocity, mode), then SYNC; the drive answers with TxPDO1 (statusword,
 velocity actual, mode display) and TxPDO2 (position actual, current actual averaged).
 RxPDO2 goes first so that a new position set-point is in place when the controlword's
-new-set-point edge arrives (both RxPDOs are asynchronous, type 255). Reception runs in python-
-can's Notifier, handed to this event loop; nothing blocks. One complete TxPDO1+TxPDO2 pair is
+new-set-point edge arrives (both RxPDOs are asynchronous, type 255). A real-time control task
+paces the cycle (``cycle_soon()`` after each tick): the RxPDOs carry that tick's commands and
+the SYNC keeps the tick's timing; when its ticks stop the cycle keeps its own period. Frames
+are received on this event loop (:class:`~dentibot.io.can_reader.LoopReader`); nothing
+blocks. One complete TxPDO1+TxPDO2 pair is
 one sample (``seq`` +1); answers are matched to SYNCs in order, a SYNC unanswered after
 ``answer_timeout_s`` counts as lost.
 

@@ -140,7 +140,11 @@ class ForceSensor(Protocol):
 
 @runtime_checkable
 class Handpiece(Protocol):
-    """The motorised handpiece turning the file; speeds and angles at the file."""
+    """The motorised handpiece turning the file; speeds and angles at the file.
+
+    A drive on a bus with a cyclic exchange of its own (the EPOS4's SYNC) may also offer
+    ``cycle_soon()``: the real-time control task calls it after each tick, so that the
+    tick's commands go out in that tick's cycle."""
 
     async def read(self) -> MotorState:
         """Newest motor state."""

@@ -80,6 +80,8 @@ class Runtime:
         #: ``event_sink(tick, kind, detail)`` gets every event, command and fault as it happens.
         self.event_sink = event_sink
         self.on_tick: Callable[[Runtime], None] | None = None
+        #: in real time the drive's cycle runs right after the tick's commands (Handpiece)
+        self._cycle_soon = clock.realtime and getattr(devices.motor, "cycle_soon", None)
         #: ticks run in bulk (:mod:`dentibot.app.drill_loop`); readers of their figures and rows
         #: (``on_block``: all; ``on_block_read``: all but a recorder fed via ``block_wire``)
         self.fused: Callable[[Runtime], Awaitable[int]] | None = None
@@ -225,6 +227,8 @@ class Runtime:
             await tr.fire("fault", cause)
             self.note("fault", cause)
             await self._enter(tr.state, est)
+        if self._cycle_soon:
+            self._cycle_soon()
         # 6. telemetry, every tick (inputs failed: the last estimate again, "inputs_invalid")
         self.ticks, self.qdot_cmd = k + 1, qdot
         if est is not None:
