@@ -200,31 +200,13 @@ class SocketcandBus(can.BusABC):
         return self._sock.fileno()
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        while True:
-            if self._frames:
-                return self._frames.popleft(), False
-            msg = self._next_message()
-            if msg is not None:
-                if msg.startswith("< frame "):
-                    self._keep_frame(msg)
-                continue                                # < ok >, < echo >, < error ..>
-            try:
-                ready, _, _ = select.select([self._sock], [], [], timeout)
-            except (OSError, ValueError) as exc:
-                raise can.CanOperationError(f"{self.channel_info}: receive failed: "
-                                            f"{exc}") from exc
-            if not ready:
+        while not self._frames:
+            if self._parse_next():
+                continue                                # a frame kept, or < ok >, < echo >
+            if not self._read(timeout):
                 return None, False
-            try:
-                data = self._sock.recv(4096)
-            except OSError as exc:
-                raise can.CanOperationError(f"{self.channel_info}: receive failed: "
-                                            f"{exc}") from exc
-            if not data:
-                raise can.CanOperationError(f"{self.channel_info}: the server closed the "
-                                            "connection")
-            self._text += data.decode("ascii", "replace")
             timeout = 0.0
+        return self._frames.popleft(), False
 
     def drain(self, limit: int) -> list[can.Message]:
         """Up to ``limit`` frames that can be had now without waiting, in order: what the
@@ -233,22 +215,38 @@ class SocketcandBus(can.BusABC):
         readable (:class:`~dentibot.io.can_reader.LoopReader`): one read and no waiting, where
         python-can's ``recv(0)`` per frame polls the socket once for each. The end of the
         stream, or a failed read, is :class:`can.CanOperationError`."""
-        sock = self._sock
+        self._read(0.0)
+        frames = self._frames
+        while len(frames) < limit and self._parse_next():
+            pass
+        return [frames.popleft() for _ in range(min(limit, len(frames)))]
+
+    def _parse_next(self) -> bool:
+        """Take the next complete message off the buffer, keeping it when it is a frame;
+        False when the buffer holds none."""
+        msg = self._next_message()
+        if msg is None:
+            return False
+        if msg.startswith("< frame "):
+            self._keep_frame(msg)
+        return True
+
+    def _read(self, timeout: float | None) -> bool:
+        """What the socket holds, read once into the buffer after waiting up to ``timeout``
+        (s; None: for ever) for it; False when nothing came. The end of the stream, or a
+        failed wait or read, is :class:`can.CanOperationError`."""
         try:
-            if select.select([sock], [], [], 0)[0]:
-                data = sock.recv(65536)
-                if not data:
-                    raise can.CanOperationError(f"{self.channel_info}: the server closed the "
-                                                "connection")
-                self._text += data.decode("ascii", "replace")
+            ready, _, _ = select.select([self._sock], [], [], timeout)
+            data = self._sock.recv(65536) if ready else None
         except (OSError, ValueError) as exc:
             raise can.CanOperationError(f"{self.channel_info}: receive failed: {exc}") from exc
-        frames = self._frames
-        while len(frames) < limit and (msg := self._next_message()) is not None:
-            if msg.startswith("< frame "):
-                self._keep_frame(msg)
-        out = [frames.popleft() for _ in range(min(limit, len(frames)))]
-        return out
+        if data is None:
+            return False
+        if not data:
+            raise can.CanOperationError(f"{self.channel_info}: the server closed the "
+                                        "connection")
+        self._text += data.decode("ascii", "replace")
+        return True
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self.send_text(self.send_line(msg).encode("ascii"))

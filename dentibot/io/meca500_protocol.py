@@ -568,7 +568,6 @@ class FrameSplitter:
         self.max_len = max_len
         self._buf = bytearray()
         self._discarding = False
-        self._discarded = 0
         self.frames = 0
         self.empty = 0
         self.oversized = 0
@@ -591,7 +590,6 @@ class FrameSplitter:
         for chunk in parts:                # each one ends at a terminator
             if self._discarding:           # the oversized frame ends at this terminator
                 self._discarding = False
-                self._discarded = 0
                 continue
             if buf:
                 if len(buf) + len(chunk) > max_len:
@@ -610,9 +608,9 @@ class FrameSplitter:
                 out.append(frame)
             else:
                 self.empty += 1
-        if self._discarding:
-            self._discarded += len(tail)
-        elif len(buf) + len(tail) > max_len:
+        if self._discarding:               # the rest of an oversized frame: dropped
+            return out
+        if len(buf) + len(tail) > max_len:
             out.append(self._too_long(len(buf) + len(tail)))
             buf.clear()
             self._discarding = True

@@ -146,8 +146,8 @@ class RealTimeClock(Clock):
     (``time.perf_counter``, the default) it waits on a kernel timer armed at the deadline
     (:class:`~dentibot.runtime.deadline_timer.DeadlineTimer`): the event loop sleeps,
     serving the device streams, and wakes within microseconds of the deadline, leaving the
-    CPU to everything else meanwhile; the last ``_WAKE_EARLY_S`` it spins. Elsewhere (or ``timer=False``) it sleeps coarsely and
-    spins the last ``spin_s``."""
+    CPU to everything else meanwhile; the last ``_WAKE_EARLY_S`` it spins. Elsewhere (or
+    ``timer=False``) it sleeps coarsely and spins the last ``spin_s``."""
 
     def __init__(self, period_s: float = 0.002, spin_s: float = 0.0015,
                  clock: Callable[[], float] = time.perf_counter, timer: bool = True) -> None:
