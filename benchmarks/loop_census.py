@@ -20,20 +20,22 @@ from asyncio import events
 from contextlib import contextmanager
 
 
+#: What resumes a task: the wake-up of an awaited future, a step (C tasks: a wrapper with no
+#: qualified name of its own)
+_TASK_STEPS = ("Task.task_wakeup", "Task.__step", "TaskStepMethWrapper")
+
+
 def callback_name(cb) -> str:
     """A callback's name in the census: the task a wake-up resumes, the protocol a socket's
     readiness feeds, else the callable's qualified name."""
     owner = getattr(cb, "__self__", None)
     name = getattr(cb, "__qualname__", None) or type(cb).__name__
-    if name in ("Task.task_wakeup", "Task.__step") and owner is not None:
+    if name in _TASK_STEPS and owner is not None:
         return f"task: {owner.get_name()}"
     if name.endswith("._read_ready") and owner is not None:
         protocol = getattr(owner, "_protocol", None)
         if protocol is not None:
             return f"read: {type(protocol).__qualname__}"
-    if type(cb).__name__ == "TaskStepMethWrapper":
-        task = getattr(cb, "__self__", None)
-        return f"task: {task.get_name()}" if task is not None else name
     return name
 
 
