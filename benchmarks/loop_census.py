@@ -19,7 +19,6 @@ import time
 from asyncio import events
 from contextlib import contextmanager
 
-
 #: What resumes a task: the wake-up of an awaited future, a step (C tasks: a wrapper with no
 #: qualified name of its own)
 _TASK_STEPS = ("Task.task_wakeup", "Task.__step", "TaskStepMethWrapper")
