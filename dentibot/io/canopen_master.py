@@ -267,25 +267,38 @@ class SocketcandBus(can.BusABC):
                        for cid, data in frames).encode("ascii")
 
     def shutdown(self) -> None:
-        """Close the connection gracefully: our end is shut first (the server reads every
-        frame sent so far, then the end of the stream), and what the server still sends is
-        read and dropped until it closes too, for at most ``_CLOSE_DRAIN_S``. A socket
-        closed with frames unread in it sends a reset instead, and a reset makes the
-        server's kernel drop what the server had not read yet: the last frames sent
-        (the drive's disable, the NMT stop) would be lost."""
+        """Close the connection gracefully, without blocking the caller: our end is shut
+        first (the server reads every frame sent so far, then the end of the stream), and a
+        short-lived thread reads and drops what the server still sends until it closes too,
+        for at most ``_CLOSE_DRAIN_S``, then closes the socket. A socket closed with frames
+        unread in it sends a reset instead, and a reset makes the server drop what it had not
+        read yet: the last frames sent (the drive's disable, the NMT stop) would be lost.
+        Waiting here instead would hold the event loop, and with it the other drivers' cyclic
+        frames (a drive's heartbeat consumer: 30 ms)."""
         super().shutdown()
         sock = self._sock
         try:
             sock.shutdown(socket.SHUT_WR)
-            deadline = time.monotonic() + _CLOSE_DRAIN_S
-            while (left := deadline - time.monotonic()) > 0:
-                sock.settimeout(left)
-                if not sock.recv(4096):
-                    break
-        except OSError:                     # (TimeoutError included) reset, gone, or silent
-            pass
-        finally:
+        except OSError:                     # reset or gone already
             sock.close()
+            return
+        threading.Thread(target=_drain_and_close, args=(sock,), daemon=True,
+                         name=f"{self.channel_info} close").start()
+
+
+def _drain_and_close(sock: socket.socket) -> None:
+    """What the peer still sends, read and dropped until it closes, at most
+    ``_CLOSE_DRAIN_S``; then the socket closed."""
+    try:
+        deadline = time.monotonic() + _CLOSE_DRAIN_S
+        while (left := deadline - time.monotonic()) > 0:
+            sock.settimeout(left)
+            if not sock.recv(4096):
+                break
+    except OSError:                         # (TimeoutError included) reset, or silent
+        pass
+    finally:
+        sock.close()
 
 
 
