@@ -200,13 +200,31 @@ class SocketcandBus(can.BusABC):
         return self._sock.fileno()
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        while not self._frames:
-            if self._parse_next():
-                continue                                # a frame kept, or < ok >, < echo >
-            if not self._read(timeout):
+        while True:
+            if self._frames:
+                return self._frames.popleft(), False
+            msg = self._next_message()
+            if msg is not None:
+                if msg.startswith("< frame "):
+                    self._keep_frame(msg)
+                continue                                # < ok >, < echo >, < error ..>
+            try:
+                ready, _, _ = select.select([self._sock], [], [], timeout)
+            except (OSError, ValueError) as exc:
+                raise can.CanOperationError(f"{self.channel_info}: receive failed: "
+                                            f"{exc}") from exc
+            if not ready:
                 return None, False
+            try:
+                data = self._sock.recv(4096)
+            except OSError as exc:
+                raise can.CanOperationError(f"{self.channel_info}: receive failed: "
+                                            f"{exc}") from exc
+            if not data:
+                raise can.CanOperationError(f"{self.channel_info}: the server closed the "
+                                            "connection")
+            self._text += data.decode("ascii", "replace")
             timeout = 0.0
-        return self._frames.popleft(), False
 
     def drain(self, limit: int) -> list[can.Message]:
         """Up to ``limit`` frames that can be had now without waiting, in order: what the
@@ -215,38 +233,22 @@ class SocketcandBus(can.BusABC):
         readable (:class:`~dentibot.io.can_reader.LoopReader`): one read and no waiting, where
         python-can's ``recv(0)`` per frame polls the socket once for each. The end of the
         stream, or a failed read, is :class:`can.CanOperationError`."""
-        self._read(0.0)
-        frames = self._frames
-        while len(frames) < limit and self._parse_next():
-            pass
-        return [frames.popleft() for _ in range(min(limit, len(frames)))]
-
-    def _parse_next(self) -> bool:
-        """Take the next complete message off the buffer, keeping it when it is a frame;
-        False when the buffer holds none."""
-        msg = self._next_message()
-        if msg is None:
-            return False
-        if msg.startswith("< frame "):
-            self._keep_frame(msg)
-        return True
-
-    def _read(self, timeout: float | None) -> bool:
-        """What the socket holds, read once into the buffer after waiting up to ``timeout``
-        (s; None: for ever) for it; False when nothing came. The end of the stream, or a
-        failed wait or read, is :class:`can.CanOperationError`."""
+        sock = self._sock
         try:
-            ready, _, _ = select.select([self._sock], [], [], timeout)
-            data = self._sock.recv(65536) if ready else None
+            if select.select([sock], [], [], 0)[0]:
+                data = sock.recv(65536)
+                if not data:
+                    raise can.CanOperationError(f"{self.channel_info}: the server closed the "
+                                                "connection")
+                self._text += data.decode("ascii", "replace")
         except (OSError, ValueError) as exc:
             raise can.CanOperationError(f"{self.channel_info}: receive failed: {exc}") from exc
-        if data is None:
-            return False
-        if not data:
-            raise can.CanOperationError(f"{self.channel_info}: the server closed the "
-                                        "connection")
-        self._text += data.decode("ascii", "replace")
-        return True
+        frames = self._frames
+        while len(frames) < limit and (msg := self._next_message()) is not None:
+            if msg.startswith("< frame "):
+                self._keep_frame(msg)
+        out = [frames.popleft() for _ in range(min(limit, len(frames)))]
+        return out
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self.send_text(self.send_line(msg).encode("ascii"))
@@ -267,38 +269,25 @@ class SocketcandBus(can.BusABC):
                        for cid, data in frames).encode("ascii")
 
     def shutdown(self) -> None:
-        """Close the connection gracefully, without blocking the caller: our end is shut
-        first (the server reads every frame sent so far, then the end of the stream), and a
-        short-lived thread reads and drops what the server still sends until it closes too,
-        for at most ``_CLOSE_DRAIN_S``, then closes the socket. A socket closed with frames
-        unread in it sends a reset instead, and a reset makes the server drop what it had not
-        read yet: the last frames sent (the drive's disable, the NMT stop) would be lost.
-        Waiting here instead would hold the event loop, and with it the other drivers' cyclic
-        frames (a drive's heartbeat consumer: 30 ms)."""
+        """Close the connection gracefully: our end is shut first (the server reads every
+        frame sent so far, then the end of the stream), and what the server still sends is
+        read and dropped until it closes too, for at most ``_CLOSE_DRAIN_S``. A socket
+        closed with frames unread in it sends a reset instead, and a reset makes the
+        server's kernel drop what the server had not read yet: the last frames sent
+        (the drive's disable, the NMT stop) would be lost."""
         super().shutdown()
         sock = self._sock
         try:
             sock.shutdown(socket.SHUT_WR)
-        except OSError:                     # reset or gone already
+            deadline = time.monotonic() + _CLOSE_DRAIN_S
+            while (left := deadline - time.monotonic()) > 0:
+                sock.settimeout(left)
+                if not sock.recv(4096):
+                    break
+        except OSError:                     # (TimeoutError included) reset, gone, or silent
+            pass
+        finally:
             sock.close()
-            return
-        threading.Thread(target=_drain_and_close, args=(sock,), daemon=True,
-                         name=f"{self.channel_info} close").start()
-
-
-def _drain_and_close(sock: socket.socket) -> None:
-    """What the peer still sends, read and dropped until it closes, at most
-    ``_CLOSE_DRAIN_S``; then the socket closed."""
-    try:
-        deadline = time.monotonic() + _CLOSE_DRAIN_S
-        while (left := deadline - time.monotonic()) > 0:
-            sock.settimeout(left)
-            if not sock.recv(4096):
-                break
-    except OSError:                         # (TimeoutError included) reset, or silent
-        pass
-    finally:
-        sock.close()
 
 
 
