@@ -9,8 +9,9 @@ CPU-bound job beside): a reader thread cost the control process a second wake-up
 batch, the pipe's read and the lock's hand-overs, about a fifth of its work between ticks,
 and the control thread waited for the lock whenever the reader held it.
 
-A bus without one (python-can's ``virtual`` bus, most vendor interfaces) is read in a
-thread of its own. python-can's :class:`can.Notifier` then hands every frame over on its
+A bus without one (python-can's own ``virtual`` bus, most vendor interfaces) is read in a
+thread of its own (:class:`~dentibot.io.virtual_bus.LoopVirtualBus` is the ``virtual`` bus
+with a file descriptor). python-can's :class:`can.Notifier` then hands every frame over on its
 own: one ``call_soon_threadsafe`` (a write to the loop's wake-up pipe) per frame, and one
 hand-over of the interpreter lock between its reader thread and the loop per frame. When the
 loop is busy (a 500 Hz control task, the simulators of a whole robot in the same process)

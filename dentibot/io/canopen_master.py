@@ -33,6 +33,7 @@ from dentibot.io import canopen_protocol as co
 from dentibot.io.can_reader import LoopReader
 from dentibot.io.canopen_protocol import NmtCommand, OdObject, SdoFrame
 from dentibot.io.interfaces import ConnectTimeout
+from dentibot.io.virtual_bus import LoopVirtualBus
 
 log = structlog.get_logger(__name__)
 
@@ -440,6 +441,8 @@ class CanOpenMaster:
             kw.setdefault("tcp_tune", True)
             kw.setdefault("timeout_s", self.connect_timeout_s)
             return SocketcandBus(self.channel, self.host, self.port, **kw)
+        if self.interface == "virtual":         # read on the event loop, no thread
+            return LoopVirtualBus(channel=self.channel, **kw)
         return can.Bus(interface=self.interface, channel=self.channel, **kw)
 
     def _bus_description(self) -> str:

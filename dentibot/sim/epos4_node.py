@@ -63,8 +63,8 @@ Scaling: velocity (rpm, motor side) = ``omega_rpm * gear``; position (inc) = ``p
 * counts_per_turn / 360`` wrapped into INTEGER32; current 0x30D1:01 (mA) = ``current_a *
 1000``; torque actual 0x6077 (per mille of 0x6076) from the current and the torque constant.
 
-Threading: python-can's Notifier hands frames to the event loop (``loop=``), so the World is
-only touched from the loop's thread, like :class:`~dentibot.sim.timing.RealTimeStepper`. The
+Threading: frames are handed to the event loop (:class:`~dentibot.io.can_reader.LoopReader`),
+so the World is only touched from the loop's thread, like :class:`~dentibot.sim.timing.RealTimeStepper`. The
 node never steps the World. The bus is the caller's: ``close()`` does not shut it down.
 """
 
@@ -301,8 +301,8 @@ class Epos4Node(SimNode, BusAttached):
 
     # ------------------------------------------------------------------ lifecycle
     async def start(self) -> None:
-        """Attach to the bus (python-can Notifier in this event loop), send the boot-up
-        message, enter PRE-OPERATIONAL and start the heartbeat producer."""
+        """Attach to the bus (read in this event loop), send the boot-up message, enter
+        PRE-OPERATIONAL and start the heartbeat producer."""
         if self._started:
             return
         if self._closed:

@@ -3,7 +3,8 @@
 - Meca500 TCP text API on ``meca_port`` (monitoring on the next port);
 - ATI Net F/T RDT over UDP on ``netft_port`` plus its HTTP calibration page on ``netft_http_port``;
 - the auxiliary-I/O Modbus TCP server on ``modbus_port``;
-- the EPOS4 as a CANopen node on a python-can ``virtual`` bus, exposed to other processes
+- the EPOS4 as a CANopen node on a python-can ``virtual`` bus (read on the event loop:
+  :class:`~dentibot.io.virtual_bus.LoopVirtualBus`), exposed to other processes
   through a socketcand-compatible TCP endpoint on ``can_port`` (channel ``can_channel``) and,
   with ``can_interface`` set, on that python-can bus as well (e.g. ``socketcan`` on a kernel
   vcan named ``can_channel``: :class:`~dentibot.sim.can_bus_attach.CanBusBridge`);
@@ -32,6 +33,7 @@ import structlog
 
 from dentibot.errors import ConfigError
 from dentibot.io.devices import DevicesConfig, TrackerConfig, loopback_config
+from dentibot.io.virtual_bus import LoopVirtualBus
 from dentibot.sim.aux_modbus_server import AuxModbusServer
 from dentibot.sim.can_bus_attach import CanBusBridge, open_bus
 from dentibot.sim.epos4_node import Epos4Node
@@ -144,17 +146,15 @@ class VirtualDentiBot:
         self.netft = NetFTServer(w, c.host, c.netft_port, http_port=c.netft_http_port,
                                  rate_hz=c.netft_rate_hz)
         self.modbus = AuxModbusServer(w, c.host, c.modbus_port)
-        self._bus = can.Bus(interface="virtual", channel=self._bus_channel,
-                            receive_own_messages=False)
+        self._bus = LoopVirtualBus(channel=self._bus_channel, receive_own_messages=False)
         self.epos = Epos4Node(w, self._bus, c.node_id)
         epos = self.epos
         self.modbus.host_lost_outputs.append(
             lambda lost: epos.set_sto(STO_AUX_HOST_LOST, lost))
         self.socketcand = SocketcandServer(
-            can.Bus(interface="virtual", channel=self._bus_channel), c.host, c.can_port,
-            c.can_channel)
+            LoopVirtualBus(channel=self._bus_channel), c.host, c.can_port, c.can_channel)
         if c.tracker:
-            self._tracker_bus = can.Bus(interface="virtual", channel=self._bus_channel)
+            self._tracker_bus = LoopVirtualBus(channel=self._bus_channel)
             self.tracker = TrackerNodes(w, self._tracker_bus, self.tracker_params)
         try:
             if c.can_interface:

@@ -25,7 +25,8 @@ Per node (framing from :mod:`dentibot.io.canopen_protocol`, objects from
 
 Test hooks: ``muted`` (a node that says nothing: cut cable or power loss) and the model's
 ``broken`` / ``held_mm`` (a snapped or caught wire). The node never steps the World; frames
-are handled in the event loop (python-can Notifier with ``loop=``). The bus is the caller's.
+are handled in the event loop (:class:`~dentibot.io.can_reader.LoopReader`). The bus is the
+caller's.
 """
 
 from __future__ import annotations
