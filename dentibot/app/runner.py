@@ -27,6 +27,7 @@ from dentibot.app.tracking import sim_tracking, tracked_config
 from dentibot.control.filebeam import FileBeam
 from dentibot.errors import ConfigError
 from dentibot.io.devices import DevicesConfig, open_devices
+from dentibot.io.tasks import in_thread
 from dentibot.protocol.loader import ProtocolFileError
 from dentibot.protocol.schema import LIMIT_SHARE_OF_STRENGTH, WORLDS, Protocol, SimulatorSpec
 from dentibot.runtime.config import RuntimeConfig, Thresholds, ToolGeometry, TreatmentPlan
@@ -164,6 +165,11 @@ class RunResult:
         if self.summary.status == "aborted" and self.signal_exit is not None:
             return self.signal_exit
         return EXIT_CODES.get(self.summary.status, 1)
+
+
+def _close_unused(recorder) -> None:
+    """A recorder opened after its run was cancelled: its file is finished, empty."""
+    recorder.close("aborted", "cancelled before the first tick")
 
 
 class ProtocolRunner:
@@ -365,8 +371,13 @@ class ProtocolRunner:
                             file_length_mm=float(p.file.length_mm))
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.recorder = open_recorder(self.path, meta, overwrite=self._overwrite,
-                                         validate=False, view=view)  # rows checked in tests
+            # in a thread: the recorder's process and journal take tens of ms, and the
+            # drive already watches this loop's heartbeat (30 ms)
+            path, overwrite = self.path, self._overwrite
+            self.recorder = await in_thread(
+                lambda: open_recorder(path, meta, overwrite=overwrite, validate=False,
+                                      view=view),    # rows checked in tests
+                "dentibot-recorder-open", orphan=_close_unused)
             meta = self.recorder.metadata
         if self._live_port is not None:
             self.live = LiveView(meta, port=self._live_port, view=view)
@@ -404,29 +415,32 @@ class ProtocolRunner:
             status, reason = proc.outcome()
         except Aborted:
             await proc.safe_stop()
-            return RunResult(self._close("aborted", self._abort_reason), self.path)
+            return RunResult(await self._close("aborted", self._abort_reason), self.path)
         except asyncio.CancelledError:
             await proc.safe_stop()
-            self._close("aborted", self._abort_reason or "cancelled by the operator")
+            await self._close("aborted", self._abort_reason or "cancelled by the operator")
             raise
         except Exception as exc:  # noqa: BLE001 - a fault of the run, not of its input
             # (a device error the control task could not turn into a fault, the control task
             # dying, the recording failing): stopped safely, reported as the run's fault
             await proc.safe_stop()
             why = proc.error or f"{type(exc).__name__}: {exc}"
-            return RunResult(self._close("fault", why), self.path)
+            return RunResult(await self._close("fault", why), self.path)
         except BaseException as exc:
             await proc.safe_stop()
-            self._close("fault", f"{type(exc).__name__}: {exc}")
+            await self._close("fault", f"{type(exc).__name__}: {exc}")
             raise
-        return RunResult(self._close(status, reason), self.path)
+        return RunResult(await self._close(status, reason), self.path)
 
-    def _close(self, status: str, reason: str) -> RunSummary:
+    async def _close(self, status: str, reason: str) -> RunSummary:
+        """Finish the live view, the recording (in a thread: its writer is joined while the
+        devices, still open, watch this loop) and the summary."""
         if self.live is not None:
             self.live.close(status, reason)
         if self.recorder is not None:
+            rec = self.recorder
             try:
-                self.recorder.close(status, reason)
+                await in_thread(lambda: rec.close(status, reason), "dentibot-recorder-close")
             except TelemetryError as exc:     # the summary is still written and returned
                 status = "fault"
                 reason = f"{reason}; recording: {exc}" if reason else f"recording: {exc}"

@@ -57,8 +57,7 @@ import structlog
 
 from dentibot.app.procedure import Procedure
 from dentibot.app.selftest import FaultResult
-from dentibot.io.canopen_master import in_thread
-from dentibot.io.tasks import cancel_until_done
+from dentibot.io.tasks import cancel_until_done, in_thread
 from dentibot.runtime.config import RuntimeConfig, Thresholds, TreatmentPlan
 
 _log = structlog.get_logger("dentibot.app")
@@ -309,7 +308,7 @@ class _ForeignCanMaster:
         # its own thread (joined): the handshake's server is this event loop
         self._bus = await in_thread(lambda: can.Bus(
             interface="socketcand", host="127.0.0.1", port=self.port, channel=self.channel,
-            tcp_tune=True), "selftest-foreign-master")
+            tcp_tune=True), "selftest-foreign-master", orphan=lambda bus: bus.shutdown())
         data = RXPDO1.layout.pack((CONTROLWORD[Command.ENABLE_OPERATION],
                                    round(self.rpm * self.gear), int(Mode.PROFILE_VELOCITY)),
                                   "RxPDO1")

@@ -19,7 +19,6 @@ import asyncio
 import math
 import select
 import socket
-import threading
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable, Sequence
@@ -33,6 +32,7 @@ from dentibot.io import canopen_protocol as co
 from dentibot.io.can_reader import LoopReader
 from dentibot.io.canopen_protocol import NmtCommand, OdObject, SdoFrame
 from dentibot.io.interfaces import ConnectTimeout
+from dentibot.io.tasks import in_thread
 from dentibot.io.virtual_bus import LoopVirtualBus
 
 log = structlog.get_logger(__name__)
@@ -301,41 +301,9 @@ class SdoAbort(DeviceFault):
                                  f" ({co.sdo_abort_meaning(code)})")
 
 
-async def in_thread(fn: Callable[[], Any], name: str) -> Any:
-    """Run a blocking ``fn`` (opening a bus: socketcand's handshake blocks) in a short-lived
-    thread, joined when done, so the event loop keeps serving (e.g. an in-process server).
-    A bus opened after the caller gave up is shut down."""
-    loop = asyncio.get_running_loop()
-    fut: asyncio.Future = loop.create_future()
-
-    def deliver(ok: bool, value: Any) -> None:
-        if fut.cancelled():
-            if ok and hasattr(value, "shutdown"):
-                value.shutdown()          # a bus nobody is waiting for any more
-            return
-        if ok:
-            fut.set_result(value)
-        else:
-            fut.set_exception(value)
-
-    def run() -> None:
-        try:
-            value, ok = fn(), True
-        except BaseException as exc:  # noqa: BLE001 - handed to the awaiting task
-            value, ok = exc, False
-        try:
-            loop.call_soon_threadsafe(deliver, ok, value)
-        except RuntimeError:              # loop closed meanwhile
-            if ok and hasattr(value, "shutdown"):
-                value.shutdown()
-
-    th = threading.Thread(target=run, name=name, daemon=True)
-    th.start()
-    try:
-        return await fut
-    finally:
-        if not fut.cancelled():
-            th.join(timeout=1.0)
+def _shut_down(bus: can.BusABC) -> None:
+    """A bus opened after the caller gave up: nobody will use it."""
+    bus.shutdown()
 
 
 def _resolve(fut: asyncio.Future, value: object) -> None:
@@ -462,7 +430,8 @@ class CanOpenMaster:
         loop = asyncio.get_running_loop()
         self._sdo_lock = asyncio.Lock()
         try:
-            self._bus = await in_thread(self._make_bus, f"{self.name}-open-bus")
+            self._bus = await in_thread(self._make_bus, f"{self.name}-open-bus",
+                                        orphan=_shut_down)
         except TimeoutError as exc:
             raise self._open_timeout(exc) from None
         except (can.CanError, OSError, ValueError, TypeError, ImportError) as exc:
@@ -648,4 +617,4 @@ class CanOpenMaster:
 
 
 __all__ = ["SOCKETCAND_PORT", "CanOpenMaster", "ConfigurationMismatch", "Handler", "SdoAbort",
-           "SocketcandBus", "in_thread"]
+           "SocketcandBus"]

@@ -20,7 +20,6 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +34,7 @@ from dentibot.app.tracker_calibration import START_STATES as CALIBRATION_START_S
 from dentibot.app.tracking import sim_tracking, tracked_config
 from dentibot.errors import DentibotError
 from dentibot.io.devices import DevicesConfig, load_devices_config, open_devices
+from dentibot.io.tasks import in_thread
 from dentibot.protocol.schema import Protocol
 from dentibot.runtime.control_task import Runtime
 from dentibot.runtime.gate import GateClosed
@@ -170,33 +170,6 @@ class _LiveSteps(StepExecutor):
             self.first.set_result(refusal)
         if refusal is not None:
             raise StepRefused(refusal)
-
-
-async def _in_thread(fn, *args, **kwargs):
-    """``fn(*args)`` in a short-lived thread (file creation, joins): the loop never waits."""
-    loop = asyncio.get_running_loop()
-    fut = loop.create_future()
-
-    def settle(ok: bool, value) -> None:
-        if not fut.done():
-            (fut.set_result if ok else fut.set_exception)(value)
-
-    def work() -> None:
-        try:
-            result = fn(*args, **kwargs)
-        except BaseException as exc:  # noqa: BLE001 - handed to the awaiting task
-            loop.call_soon_threadsafe(settle, False, exc)
-        else:
-            loop.call_soon_threadsafe(settle, True, result)
-
-    t = threading.Thread(target=work, name="dentibot-session-io", daemon=True)
-    t.start()
-    try:
-        return await fut
-    finally:
-        while t.is_alive():          # it has handed over its result: ends in microseconds
-            await asyncio.sleep(0.001)
-        t.join()
 
 
 class SessionController:
@@ -621,7 +594,7 @@ class SessionController:
             return open_recorder(path, meta, validate=False)
 
         try:
-            self.recorder = await _in_thread(create)
+            self.recorder = await in_thread(create, "dentibot-session-record-start")
         except (DentibotError, OSError) as exc:
             return Reply("error", f"record start: {exc}")
         self.recording_error = None
@@ -635,7 +608,7 @@ class SessionController:
         if status is None:
             status, reason = self._end_status(reason or "recording stopped by the operator")
         try:
-            await _in_thread(rec.close, status, reason)
+            await in_thread(lambda: rec.close(status, reason), "dentibot-session-record-stop")
         except DentibotError as exc:
             return Reply("error", f"record stop: {exc}")
         return Reply("ok", f"recording closed: {rec.path} ({rec.rows_queued} ticks; "

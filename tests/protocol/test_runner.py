@@ -115,3 +115,41 @@ async def test_a_live_run_serves_every_tick_on_loopback_and_records_what_is_enfo
     # the limits in force: 90 % of the file's 62 mNm, the drive's halfway to the strength
     assert run["torque_limit_mnm"] == pytest.approx(55.8)
     assert run["drive_limit_mnm"] == pytest.approx((55.8 + 62.0) / 2)
+
+
+async def test_opening_and_finishing_the_recording_never_holds_the_event_loop(tmp_path,
+                                                                              monkeypatch):
+    """The recorder's process and journal are opened, and the file finished, off the event
+    loop: with both made to take HOLD_S (a slow disk), a probe on the loop (1 ms sleeps)
+    never waits more than half of it. Held in the loop, each would stall it HOLD_S, and a
+    drive watching the host's heartbeat (30 ms) would fault."""
+    import time
+
+    import dentibot.app.runner as runner_mod
+    from dentibot.app.selftest_wire import LoopStalls
+
+    hold_s = 0.4
+    real_open = runner_mod.open_recorder
+
+    def slow_open(*args, **kwargs):
+        time.sleep(hold_s)
+        rec = real_open(*args, **kwargs)
+        real_close = rec.close
+
+        def slow_close(*a, **k):
+            time.sleep(hold_s)
+            return real_close(*a, **k)
+
+        rec.close = slow_close
+        return rec
+
+    monkeypatch.setattr(runner_mod, "open_recorder", slow_open)
+    short = SHORT.replace("rounds: [{duration_s: 8}]", "rounds: [{duration_s: 0.5}]")
+    probe = LoopStalls()
+    probe.start()
+    t0 = time.monotonic()
+    res = await ProtocolRunner(parse_protocol(short), recording=tmp_path / "run.mcap").run()
+    worst_ms = await probe.stop()
+    assert time.monotonic() - t0 >= 2 * hold_s           # both holds happened
+    assert res.summary.status == "ok" and read_recording(tmp_path / "run.mcap").complete
+    assert worst_ms < hold_s * 1e3 / 2, worst_ms
