@@ -167,9 +167,9 @@ class RunResult:
         return EXIT_CODES.get(self.summary.status, 1)
 
 
-def _close_unused(recorder) -> None:
-    """A recorder opened after its run was cancelled: its file is finished, empty."""
-    recorder.close("aborted", "cancelled before the first tick")
+def _close_unused(sink) -> None:
+    """A recorder or live view opened after its run was cancelled: finished, empty."""
+    sink.close("aborted", "cancelled before the first tick")
 
 
 class ProtocolRunner:
@@ -380,7 +380,9 @@ class ProtocolRunner:
                 "dentibot-recorder-open", orphan=_close_unused)
             meta = self.recorder.metadata
         if self._live_port is not None:
-            self.live = LiveView(meta, port=self._live_port, view=view)
+            port = self._live_port                   # its server's start, likewise
+            self.live = await in_thread(lambda: LiveView(meta, port=port, view=view),
+                                        "dentibot-live-open", orphan=_close_unused)
         if self._on_tick is not None:
             rt.on_tick = lambda _rt: self._on_tick(self)
         compiled = proc.world is not None and proc.drive and self._compiled_ticks
@@ -433,10 +435,11 @@ class ProtocolRunner:
         return RunResult(await self._close(status, reason), self.path)
 
     async def _close(self, status: str, reason: str) -> RunSummary:
-        """Finish the live view, the recording (in a thread: its writer is joined while the
-        devices, still open, watch this loop) and the summary."""
+        """Finish the live view and the recording (in threads: their writers are joined while
+        the devices, still open, watch this loop), then the summary."""
         if self.live is not None:
-            self.live.close(status, reason)
+            live = self.live
+            await in_thread(lambda: live.close(status, reason), "dentibot-live-close")
         if self.recorder is not None:
             rec = self.recorder
             try:
