@@ -43,14 +43,15 @@ async def in_thread(fn: Callable[[], Any], name: str,
     """``fn()`` in a short-lived thread named ``name``, its result (or exception) handed to
     the awaiting task; the thread is joined once it has handed it over. ``orphan(value)``
     takes care of a result nobody awaits any more (the caller was cancelled meanwhile: a
-    bus to shut down)."""
+    bus to shut down, a recording to finish), in a thread as well: it may block too."""
     loop = asyncio.get_running_loop()
     fut: asyncio.Future = loop.create_future()
 
     def deliver(ok: bool, value: Any) -> None:
         if fut.cancelled():
             if ok and orphan is not None:
-                orphan(value)
+                threading.Thread(target=orphan, args=(value,), name=f"{name}-orphan",
+                                 daemon=True).start()
             return
         if ok:
             fut.set_result(value)
