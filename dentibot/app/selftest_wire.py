@@ -191,7 +191,11 @@ class LoopStalls:
         self._task = asyncio.get_running_loop().create_task(probe(), name="loop-stall-probe")
 
     async def stop(self) -> float:
-        """Stops the probe; returns ``worst_ms``."""
+        """Stops the probe; returns ``worst_ms``. The probe is given two of its periods first:
+        a stall that ended just before (a blocking call returned, then ``stop()``) has left
+        the probe's wake-up due, and cancelled before it runs it would not be counted."""
+        if self._task is not None:
+            await asyncio.sleep(2 * self.probe_s)
         task, self._task = self._task, None
         await cancel_until_done(task)
         return self.worst_ms

@@ -442,23 +442,25 @@ class CanOpenMaster:
                                   name=f"{self.name} can reader")
         self._connected = True
 
-    def _teardown(self) -> None:
-        """Stop the reader, shut the bus down, cancel an outstanding SDO request."""
+    async def _teardown(self) -> None:
+        """Stop the reader, cancel an outstanding SDO request, shut the bus down (in a
+        thread: a socketcand connection reads what its server still sends for up to 0.1 s
+        before it closes, and the other drivers on this loop keep their cycles meanwhile)."""
         self._started = False
         self._connected = False
         if self._reader is not None:
             self._reader.stop(timeout=1.0)
             self._reader = None
-        if self._bus is not None:
-            bus, self._bus = self._bus, None
-            try:
-                bus.shutdown()
-            except (can.CanError, OSError) as exc:
-                log.warning(f"{self.log_name} bus shutdown failed", device=self.name,
-                            error=str(exc))
         pending = self._sdo_pending
         if pending is not None and not pending[3].done():
             pending[3].cancel()
+        if self._bus is not None:
+            bus, self._bus = self._bus, None
+            try:
+                await in_thread(bus.shutdown, f"{self.name}-close-bus")
+            except (can.CanError, OSError) as exc:
+                log.warning(f"{self.log_name} bus shutdown failed", device=self.name,
+                            error=str(exc))
 
     def _send(self, can_id: int, data: bytes) -> None:
         bus = self._bus

@@ -450,7 +450,7 @@ class Epos4Driver(CanOpenMaster):
                 self._send_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id)
             except DeviceFault:
                 pass
-        self._teardown()
+        await self._teardown()
         log.info("epos4 closed", device=self.name, syncs=self.syncs_sent,
                  received=self.received, lost=self.lost, errors=self.errors,
                  host_heartbeat_gap_max_ms=round(self.host_heartbeat_gap_max_s * 1e3, 1),

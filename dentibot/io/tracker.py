@@ -316,7 +316,7 @@ class TrackerDriver(CanOpenMaster):
                     self._send_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, nid)
                 except DeviceFault:
                     break
-        self._teardown()
+        await self._teardown()
         log.info("tracker closed", device=self.name, samples=self.samples, errors=self.errors)
 
     async def recover(self) -> None:

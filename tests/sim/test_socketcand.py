@@ -21,6 +21,7 @@ from can.interfaces.socketcand.socketcand import (
 from hypothesis import given
 from hypothesis import strategies as st
 
+from dentibot.app.selftest_wire import LoopStalls
 from dentibot.errors import DeviceFault, ProtocolError
 from dentibot.io.canopen_protocol import State
 from dentibot.io.epos4 import Epos4Driver, SocketcandBus
@@ -411,6 +412,16 @@ async def test_epos4_driver_through_socketcand():
         assert node.syncs_received == drv.syncs_sent
         assert drv.received == node.syncs_answered == drv.syncs_sent
         assert drv.lost == 0 and drv.errors == 0
+        # the close waits for the server's end of the stream (up to 0.1 s) off the loop: the
+        # server answering it runs on this very loop, which a close that waited in it held
+        # for the whole 0.1 s
+        probe = LoopStalls()
+        probe.start()
+        await asyncio.sleep(0.01)                     # the probe is waiting
+        closing, drv = drv, None
+        await closing.close()
+        worst_ms = await probe.stop()
+        assert worst_ms < 50.0, worst_ms
     finally:
         if drv is not None:
             await drv.close()
@@ -596,7 +607,7 @@ async def test_closing_the_client_delivers_its_last_frames_although_frames_were_
     """Frames the server sent that the client has not read when it closes: a plain close
     sends a reset, and the reset makes the server's kernel drop what the server had not
     read yet, here the NMT command sent last (as a driver's close sends it)."""
-    from dentibot.io.canopen_master import in_thread
+    from dentibot.io.tasks import in_thread
 
     received: list[bytes] = []
     done = asyncio.Event()
