@@ -248,6 +248,10 @@ class ProtocolRunner:
         self._live_port = live
         self._overwrite = overwrite
         self._abort_reason = ""
+        #: the run has ended: a real-time control task still ticking while the recording is
+        #: finished (off the loop) delivers nothing more, so that the file, the live view and
+        #: the summary end at the same tick
+        self._ended = False
 
     @property
     def rt(self) -> Runtime | None:
@@ -260,6 +264,8 @@ class ProtocolRunner:
 
     # ---------------------------------------------------------------- sinks
     def _row(self, row: dict) -> None:
+        if self._ended:
+            return
         if self._live_summary:
             self.acc.add(row)
         if self.recorder is not None:
@@ -280,6 +286,8 @@ class ProtocolRunner:
     def _block_read(self, block: TickBlock, recorder: Recorder | None = None) -> None:
         """:meth:`_block` with the recorder given (without it: the compiled ticks sent the
         rows to the recorder themselves)."""
+        if self._ended:
+            return
         if self._live_summary:
             self.acc.add_block(block)
         if recorder is not None:
@@ -302,6 +310,8 @@ class ProtocolRunner:
         })
 
     def _event(self, tick: int, kind: str, detail: str) -> None:
+        if self._ended:
+            return
         t = tick * self.rt.ts
         self.acc.add_event(kind, detail, t=t, tick=tick)
         if self.recorder is not None:
@@ -437,6 +447,7 @@ class ProtocolRunner:
     async def _close(self, status: str, reason: str) -> RunSummary:
         """Finish the live view and the recording (in threads: their writers are joined while
         the devices, still open, watch this loop), then the summary."""
+        self._ended = True
         if self.live is not None:
             live = self.live
             await in_thread(lambda: live.close(status, reason), "dentibot-live-close")

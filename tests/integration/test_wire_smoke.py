@@ -82,3 +82,46 @@ async def test_same_motion_in_process_and_over_the_wire():
     # start and stop jitter
     assert SECONDS - 0.01 <= wire_s < 2 * SECONDS, wire_s
     np.testing.assert_allclose(wire, local * (wire_s / local_s), atol=0.08 * abs(local[0]))
+
+
+async def test_a_real_time_run_ends_its_file_summary_and_rows_at_the_same_tick(tmp_path,
+                                                                              monkeypatch):
+    """Over the wire the control task ticks on while the recording is finished (off the
+    loop, made to take 0.3 s here): the ticks after the end reach neither the file nor the
+    summary, and the control task does not die on a closed recorder. The file's rows are
+    the summary's ticks, numbered without a gap."""
+    import time
+
+    import dentibot.app.runner as runner_mod
+    from dentibot.app.runner import ProtocolRunner
+    from dentibot.protocol.loader import parse_protocol
+    from dentibot.telemetry.reader import read_recording
+
+    real_open = runner_mod.open_recorder
+
+    def slow_closing(*args, **kwargs):
+        rec = real_open(*args, **kwargs)
+        real_close = rec.close
+
+        def close(*a, **k):
+            time.sleep(0.3)                       # 150 periods the control task goes on
+            return real_close(*a, **k)
+
+        rec.close = close
+        return rec
+
+    monkeypatch.setattr(runner_mod, "open_recorder", slow_closing)
+    protocol = parse_protocol(
+        "name: t\nlimits: {stale_periods: {arm: 25, ft: 25, motor: 50, aux: 100}}\n"
+        "steps:\n  - calibrate_load: {}\n  - drag: {duration_s: 0.2}\n")
+    path = tmp_path / "run.mcap"
+    async with serve_wire(World(WorldConfig(seed=3))) as bot:
+        cfg = _loose_liveness(bot.devices_config(ft_stale_after_ms=LOOSE_FT_MS))
+        runner = ProtocolRunner(protocol, devices=cfg, recording=path)
+        res = await runner.run()
+    assert res.summary.status == "ok", res.summary.reason
+    assert runner.procedure.error is None
+    rec = read_recording(path)
+    ticks = [r["tick"] for r in rec.rows]
+    assert rec.complete and ticks == list(range(ticks[0], ticks[0] + len(ticks)))
+    assert res.summary.ticks == len(ticks)
