@@ -51,6 +51,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from operator import methodcaller
 from pathlib import Path
 
 import structlog
@@ -312,7 +313,7 @@ class _ForeignCanMaster:
         # its own thread (joined): the handshake's server is this event loop
         self._bus = await in_thread(lambda: can.Bus(
             interface="socketcand", host="127.0.0.1", port=self.port, channel=self.channel,
-            tcp_tune=True), "selftest-foreign-master", orphan=lambda bus: bus.shutdown())
+            tcp_tune=True), "selftest-foreign-master", orphan=methodcaller("shutdown"))
         data = RXPDO1.layout.pack((CONTROLWORD[Command.ENABLE_OPERATION],
                                    round(self.rpm * self.gear), int(Mode.PROFILE_VELOCITY)),
                                   "RxPDO1")

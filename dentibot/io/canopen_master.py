@@ -22,6 +22,7 @@ import socket
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable, Sequence
+from operator import methodcaller
 from typing import Any, Self
 
 import can
@@ -301,11 +302,6 @@ class SdoAbort(DeviceFault):
                                  f" ({co.sdo_abort_meaning(code)})")
 
 
-def _shut_down(bus: can.BusABC) -> None:
-    """A bus opened after the caller gave up: nobody will use it."""
-    bus.shutdown()
-
-
 def _resolve(fut: asyncio.Future, value: object) -> None:
     if not fut.done():
         fut.set_result(value)
@@ -430,8 +426,9 @@ class CanOpenMaster:
         loop = asyncio.get_running_loop()
         self._sdo_lock = asyncio.Lock()
         try:
+            # a bus opened after the caller gave up: nobody will use it
             self._bus = await in_thread(self._make_bus, f"{self.name}-open-bus",
-                                        orphan=_shut_down)
+                                        orphan=methodcaller("shutdown"))
         except TimeoutError as exc:
             raise self._open_timeout(exc) from None
         except (can.CanError, OSError, ValueError, TypeError, ImportError) as exc:

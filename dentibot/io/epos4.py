@@ -68,9 +68,8 @@ new-set-point edge arrives (both RxPDOs are asynchronous, type 255). A real-time
 paces the cycle (``cycle_soon()`` after each tick): the RxPDOs carry that tick's commands and
 the SYNC keeps the tick's timing; when its ticks stop the cycle keeps its own period. Frames
 are received on this event loop (:class:`~dentibot.io.can_reader.LoopReader`); nothing
-blocks. One complete TxPDO1+TxPDO2 pair is
-one sample (``seq`` +1); answers are matched to SYNCs in order, a SYNC unanswered after
-``answer_timeout_s`` counts as lost.
+blocks. One complete TxPDO1+TxPDO2 pair is one sample (``seq`` +1); answers are matched to
+SYNCs in order, a SYNC unanswered after ``answer_timeout_s`` counts as lost.
 
 ``read()`` -> :class:`MotorState` at the *file*: ``velocity_rpm = velocity actual / gear``,
 ``position_deg = increments / counts_per_turn * 360 / gear`` (unwrapped across the INTEGER32

@@ -64,8 +64,9 @@ Scaling: velocity (rpm, motor side) = ``omega_rpm * gear``; position (inc) = ``p
 1000``; torque actual 0x6077 (per mille of 0x6076) from the current and the torque constant.
 
 Threading: frames are handed to the event loop (:class:`~dentibot.io.can_reader.LoopReader`),
-so the World is only touched from the loop's thread, like :class:`~dentibot.sim.timing.RealTimeStepper`. The
-node never steps the World. The bus is the caller's: ``close()`` does not shut it down.
+so the World is only touched from the loop's thread, like
+:class:`~dentibot.sim.timing.RealTimeStepper`. The node never steps the World. The bus is the
+caller's: ``close()`` does not shut it down.
 """
 
 from __future__ import annotations
