@@ -94,6 +94,7 @@ async def test_a_real_time_run_ends_its_file_summary_and_rows_at_the_same_tick(t
 
     import dentibot.app.runner as runner_mod
     from dentibot.app.runner import ProtocolRunner
+    from dentibot.app.selftest_wire import CHILD_STALE_PERIODS as N
     from dentibot.protocol.loader import parse_protocol
     from dentibot.telemetry.reader import read_recording
 
@@ -111,12 +112,14 @@ async def test_a_real_time_run_ends_its_file_summary_and_rows_at_the_same_tick(t
         return rec
 
     monkeypatch.setattr(runner_mod, "open_recorder", slow_closing)
+    # seconds of calibration on a shared machine: the wire self-test's stale bounds (its
+    # controller's protocol), this test being about the run's end, not about staleness
     protocol = parse_protocol(
-        "name: t\nlimits: {stale_periods: {arm: 25, ft: 25, motor: 50, aux: 100}}\n"
+        f"name: t\nlimits: {{stale_periods: {{arm: {N}, ft: {N}, motor: {N}, aux: 200}}}}\n"
         "steps:\n  - calibrate_load: {}\n  - drag: {duration_s: 0.2}\n")
     path = tmp_path / "run.mcap"
     async with serve_wire(World(WorldConfig(seed=3))) as bot:
-        cfg = _loose_liveness(bot.devices_config(ft_stale_after_ms=LOOSE_FT_MS))
+        cfg = _loose_liveness(bot.devices_config(ft_stale_after_ms=N * 2.0))
         runner = ProtocolRunner(protocol, devices=cfg, recording=path)
         res = await runner.run()
     assert res.summary.status == "ok", res.summary.reason
